@@ -1,0 +1,114 @@
+"""Backend registry: `numpy`, `warp-cpu`, `warp-cuda[:N]`, `opencl[:PLATFORM]`, and `auto`.
+
+A backend is an object with the functions of `relicgpu.backends.numpy` (the float64
+specification): face_normals, edge_angles, contour_features, flag_matrix,
+lcs_lengths, nearest_neighbors, cross_covariance, and a `name`.
+`auto` (and the RELICGPU_BACKEND environment variable) chooses one; see `resolve`.
+"""
+from __future__ import annotations
+
+import functools
+import os
+import time
+
+import numpy as np
+
+from . import numpy as numpy_backend
+
+
+class BackendError(RuntimeError):
+    """A backend that was asked for cannot be used here (named, with the reason)."""
+
+
+def _load(name: str):
+    base, _, arg = name.partition(":")
+    if base == "numpy":
+        return numpy_backend
+    if base == "warp-cpu":
+        from .warp import WarpBackend
+        return WarpBackend("cpu")
+    if base == "warp-cuda":
+        from .warp import WarpBackend
+        return WarpBackend(f"cuda:{arg or 0}")
+    if base == "opencl":
+        from .opencl import OpenCLBackend
+        return OpenCLBackend(arg or None)
+    raise BackendError(f"unknown backend {name!r}; choose from numpy, warp-cpu, warp-cuda[:N], opencl[:PLATFORM], auto")
+
+
+@functools.lru_cache(maxsize=None)
+def get_backend(name: str):
+    """The backend called `name` (not `auto`), created once per process."""
+    try:
+        return _load(name)
+    except BackendError:
+        raise
+    except Exception as exc:  # missing package, no device, driver error
+        raise BackendError(f"backend {name!r} is not available: {exc}") from exc
+
+
+def available_backends() -> list[str]:
+    """Names of the backends that load and run here, numpy first."""
+    names = ["numpy"]
+    candidates = ["warp-cpu"]
+    try:
+        import warp as wp
+        wp.config.quiet = True
+        wp.init()
+        candidates += [f"warp-cuda:{d.ordinal}" for d in wp.get_cuda_devices()]
+    except Exception:
+        pass
+    try:
+        import pyopencl as cl
+        for p in cl.get_platforms():
+            candidates.append(f"opencl:{p.name}")
+    except Exception:
+        pass
+    for name in candidates:
+        try:
+            get_backend(name)
+            names.append(name)
+        except BackendError:
+            continue
+    return names
+
+
+def _probe_time(backend) -> float:
+    """Median time of a small representative workload: LCS screening plus nearest neighbours."""
+    rng = np.random.default_rng(0)
+    n_seq, length = 64, 256
+    values = rng.random(n_seq * length).astype(np.float32)
+    offsets = np.arange(0, n_seq * length + 1, length, dtype=np.int64)
+    pairs = np.array([(i, j) for i in range(n_seq) for j in range(n_seq)], np.int32)
+    pts = rng.random((20000, 3))
+    times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        backend.lcs_lengths(values, offsets, values, offsets, pairs, 0.05)
+        backend.nearest_neighbors(pts, pts[::-1])
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+@functools.lru_cache(maxsize=None)
+def fastest_backend() -> str:
+    """The available backend with the shortest measured probe (warm, compile excluded)."""
+    best, best_t = "numpy", float("inf")
+    for name in available_backends():
+        backend = get_backend(name)
+        _probe_time(backend)  # compile and warm up
+        t = _probe_time(backend)
+        if t < best_t:
+            best, best_t = name, t
+    return best
+
+
+def resolve(name: str | None = "auto"):
+    """The backend object for `name`; `auto`/None honours RELICGPU_BACKEND, else measures."""
+    if name is None or name == "auto":
+        name = os.environ.get("RELICGPU_BACKEND") or "auto"
+    if not isinstance(name, str):
+        return name  # already a backend object
+    if name == "auto":
+        name = fastest_backend()
+    return get_backend(name)
