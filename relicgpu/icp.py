@@ -1,0 +1,131 @@
+"""Rigid fitting: Kabsch from a cross-covariance, RANSAC over LCS correspondences for
+the coarse pose, and ICP with the nearest-neighbour subset selection of Eq. 35
+(Alg. 5) for the fine pose. Nearest neighbours and the cross-covariance reduction
+run on the backend.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def kabsch(cs: np.ndarray, ct: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """The 4x4 rigid transform carrying source onto target from centroids and H = sum (s-cs)(t-ct)^T."""
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    t = np.eye(4)
+    t[:3, :3] = r
+    t[:3, 3] = ct - r @ cs
+    return t
+
+
+def fit_rigid(source: np.ndarray, target: np.ndarray, backend=None) -> np.ndarray:
+    if backend is None:
+        from .backends import numpy as backend
+    cs, ct, h, _ = backend.cross_covariance(source, target)
+    return kabsch(np.asarray(cs, np.float64), np.asarray(ct, np.float64), np.asarray(h, np.float64))
+
+
+def apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return np.asarray(points, np.float64) @ transform[:3, :3].T + transform[:3, 3]
+
+
+def batch_kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Kabsch for a batch of point triples: src, dst (B,k,3) -> (B,4,4)."""
+    cs, cd = src.mean(axis=1), dst.mean(axis=1)
+    h = np.einsum("bki,bkj->bij", src - cs[:, None], dst - cd[:, None])
+    u, _, vt = np.linalg.svd(h)
+    v = np.swapaxes(vt, 1, 2)
+    d = np.sign(np.linalg.det(v @ np.swapaxes(u, 1, 2)))
+    d[d == 0] = 1.0
+    diag = np.zeros((len(src), 3, 3))
+    diag[:, 0, 0] = diag[:, 1, 1] = 1.0
+    diag[:, 2, 2] = d
+    r = v @ diag @ np.swapaxes(u, 1, 2)
+    out = np.tile(np.eye(4), (len(src), 1, 1))
+    out[:, :3, :3] = r
+    out[:, :3, 3] = cd - np.einsum("bij,bj->bi", r, cs)
+    return out
+
+
+def ransac_poses(source: np.ndarray, target: np.ndarray, iterations: int, inlier: float,
+                 rng: np.random.Generator, keep: int) -> list[tuple[np.ndarray, int]]:
+    """Rigid poses carrying source[i] onto target[i], from random triples, scored by inliers.
+
+    Returns up to `keep` distinct poses (refitted on their inliers) with their inlier counts,
+    best first.
+    """
+    k = len(source)
+    if k < 3:
+        return []
+    idx = rng.integers(0, k, size=(iterations, 3))
+    s, t = source[idx], target[idx]
+    # triples must span a triangle of real size on both sides
+    area = np.linalg.norm(np.cross(s[:, 1] - s[:, 0], s[:, 2] - s[:, 0]), axis=1)
+    ok = (area > inlier ** 2) & (idx[:, 0] != idx[:, 1]) & (idx[:, 1] != idx[:, 2]) & (idx[:, 0] != idx[:, 2])
+    if not ok.any():
+        return []
+    poses = batch_kabsch(s[ok], t[ok])
+    moved = np.einsum("bij,kj->bki", poses[:, :3, :3], source) + poses[:, None, :3, 3]
+    inl = np.linalg.norm(moved - target[None], axis=2) < inlier
+    counts = inl.sum(axis=1)
+    order = np.argsort(-counts, kind="stable")
+    out: list[tuple[np.ndarray, int]] = []
+    for b in order:
+        if counts[b] < 3 or len(out) >= keep:
+            break
+        mask = inl[b]
+        pose = fit_rigid(source[mask], target[mask])
+        if any(_same_pose(pose, p, inlier) for p, _ in out):
+            continue
+        out.append((pose, int(counts[b])))
+    return out
+
+
+def _same_pose(p: np.ndarray, q: np.ndarray, tol: float) -> bool:
+    return np.linalg.norm(p[:3, 3] - q[:3, 3]) < 3 * tol and rotation_angle_deg(p[:3, :3] @ q[:3, :3].T) < 10.0
+
+
+def rotation_angle_deg(r: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    transform: np.ndarray
+    mean_distance: float
+    iterations: int
+
+
+def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, backend, iterations: int,
+        tolerance: float, reject: float, floor: float) -> IcpResult:
+    """Point-to-point ICP moving `source` onto `target` from the pose `init`.
+
+    Each round the subset X^p of the target nearest to the moved source (Eq. 35) is
+    paired with it; pairs farther than the rejection distance (at most `reject`,
+    shrinking with the median distance, never under `floor`) are left out of the fit.
+    Stops when the mean distance d changes less than `tolerance`.
+    """
+    pose = np.array(init, np.float64)
+    prev = np.inf
+    d_mean = np.inf
+    it = 0
+    for it in range(1, iterations + 1):
+        moved = apply(pose, source)
+        idx, dist = backend.nearest_neighbors(moved, target)
+        idx = np.asarray(idx, np.int64)
+        dist = np.asarray(dist, np.float64)
+        cutoff = max(floor, min(reject, 3.0 * float(np.median(dist))))
+        keep = dist < cutoff
+        if keep.sum() < 3:
+            break
+        d_mean = float(dist[keep].mean())
+        cs, ct, h, _ = backend.cross_covariance(moved[keep], target[idx[keep]])
+        step = kabsch(np.asarray(cs, np.float64), np.asarray(ct, np.float64), np.asarray(h, np.float64))
+        pose = step @ pose
+        if abs(prev - d_mean) < tolerance:
+            break
+        prev = d_mean
+    return IcpResult(pose, d_mean, it)

@@ -1,0 +1,62 @@
+"""All tunable parameters of the pipeline in one frozen dataclass.
+
+Lengths are fractions of the working scale (`Params.unit`, or when that is None
+the size of the fragments at hand: the mean bounding-box diagonal of a pair, the
+median of a group), so the same defaults serve a unit-size synthetic object and a
+scan in millimetres. Angles are in degrees.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+
+@dataclass(frozen=True)
+class Params:
+    # scale: the length all relative lengths below are fractions of; None = from the fragments
+    unit: float | None = None
+
+    # segmentation (Alg. 2)
+    roughness_radius: float = 0.03   # neighbourhood for the normal perturbation of a face
+    roughness_threshold_deg: float = 9.0  # median normal perturbation above this: fracture surface
+    crease_angle_deg: float = 50.0   # region growing stops at edges whose normals differ more
+    min_region_faces: int = 40       # smaller regions are merged into their neighbour
+
+    # contours
+    contour_step: float = 0.008      # resampling step along contours
+    min_contour_points: int = 24     # shorter loops are dropped
+
+    # features (Eq. 13-28)
+    kcos_k: int = 4                  # k of the k-cosine neighbourhood, in contour points
+    feature_stride: int = 3          # difference step for curvature, torsion and chords, in points
+    feature_peak_window: int = 5     # half-width of the window a curvature peak must top (Eq. 17)
+
+    # fusion (Eq. 29-32)
+    fusion_weights: str | None = None  # path of an .npz; None = the weights shipped with relicgpu
+
+    # coarse match (Eq. 33, Alg. 4)
+    lcs_eps: float = 0.25            # flag threshold on fused values (standardised units)
+    ransac_iterations: int = 400
+    ransac_inlier: float = 0.02      # correspondence inlier distance for the LCS pose
+    hypotheses: int = 6              # coarse poses handed to ICP per pair
+
+    # ICP (Eq. 34-35, Alg. 5)
+    icp_points: int = 2500           # fracture points sampled per fragment
+    icp_iterations: int = 40
+    icp_tolerance: float = 2e-4      # stop when the mean distance d changes less than this
+    icp_reject: float = 0.03         # nearest pairs farther than this are not used in the fit
+
+    # verification
+    contact_distance: float = 0.006  # a point within this of the other fracture surface is in contact
+    min_overlap: float = 0.25        # share of the smaller fracture surface in contact
+    max_rmse: float = 0.004          # RMS distance over the contact
+    max_penetration: float = 0.03    # share of surface points deeper than penetration_depth inside the other
+    penetration_depth: float = 0.015
+
+    def with_(self, **changes) -> "Params":
+        return replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+DEFAULT = Params()

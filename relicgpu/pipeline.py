@@ -1,0 +1,199 @@
+"""The pairwise pipeline: `prepare` one fragment, `match_pair` two.
+
+prepare: segment -> contours -> features -> fuse   (per fragment, cacheable)
+match_pair: LCS coarse match per contour pair -> RANSAC poses -> ICP -> verify
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import contour as contour_mod
+from . import features as features_mod
+from . import fusion as fusion_mod
+from .backends import resolve
+from .icp import icp, ransac_poses
+from .io import Fragment
+from .params import Params
+from .segment import segment
+from .verify import SurfaceSample, verify, vertex_normals
+
+
+@dataclass(frozen=True, eq=False)
+class Contour:
+    points: np.ndarray  # (N,3) closed loop, evenly resampled
+    region: int  # the fracture region it bounds
+    features: np.ndarray  # (N,5) raw [kcos, kappa, tau, chord_right, chord_left]
+    fused: np.ndarray  # (N,) fused value per point
+    feature_points: np.ndarray  # indices of curvature peaks (Eq. 17)
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    fragment: Fragment
+    scale: float  # the length relative parameters were scaled by
+    face_region: np.ndarray  # (F,)
+    region_is_fracture: np.ndarray  # (R,)
+    contours: list[Contour]
+    sample: SurfaceSample
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def fracture_faces(self) -> np.ndarray:
+        return self.region_is_fracture[self.face_region]
+
+
+@dataclass(frozen=True, eq=False)
+class PairMatch:
+    transform: np.ndarray  # 4x4 carrying b onto a
+    accepted: bool
+    score: float
+    rmse: float
+    overlap: float
+    penetration: float
+    correspondences: np.ndarray  # (K,2) point indices into contour_a / contour_b
+    contour_a: int
+    contour_b: int
+    reason: str
+    timings: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "accepted": bool(self.accepted), "transform": self.transform.tolist(), "score": float(self.score),
+            "rmse": float(self.rmse), "overlap": float(self.overlap), "penetration": float(self.penetration),
+            "contour_a": int(self.contour_a), "contour_b": int(self.contour_b),
+            "correspondences": self.correspondences.tolist(), "reason": self.reason,
+            "timings": {k: round(float(v), 6) for k, v in self.timings.items()},
+        }
+
+
+def prepare(fragment: Fragment, params: Params | None = None, backend="auto", scale: float | None = None) -> Prepared:
+    """Segment a fragment, extract its fracture contours and their fused features."""
+    params = params or Params()
+    be = resolve(backend)
+    scale = float(scale or params.unit or fragment.size)
+    if scale <= 0:
+        raise ValueError(f"{fragment.name}: fragment has no extent")
+    timings = {}
+    t0 = time.perf_counter()
+    seg = segment(fragment.vertices, fragment.faces, params, scale, be)
+    t1 = time.perf_counter()
+    timings["segment"] = t1 - t0
+
+    model = fusion_mod.load_model(params.fusion_weights)
+    step = params.contour_step * scale
+    contours = []
+    for r in np.flatnonzero(seg.region_is_fracture):
+        for loop in contour_mod.region_boundary_loops(fragment.faces, seg.face_region == r):
+            pts = fragment.vertices[loop]
+            if contour_mod.loop_length(pts) < params.min_contour_points * step:
+                continue
+            pts = contour_mod.resample_closed(pts, step)
+            raw, f = features_mod.contour_features(pts, step, params.kcos_k, params.feature_stride, be)
+            fused = fusion_mod.fuse(f, model)
+            peaks = features_mod.feature_points(raw[:, 0], params.feature_peak_window)
+            contours.append(Contour(pts, int(r), raw, fused, peaks))
+    t2 = time.perf_counter()
+    timings["contours+features"] = t2 - t1
+
+    sample = _surface_sample(fragment, seg, params.icp_points)
+    timings["sample"] = time.perf_counter() - t2
+    return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, timings)
+
+
+def _surface_sample(fragment: Fragment, seg, n_points: int) -> SurfaceSample:
+    """Deterministic subsample of fracture-face vertices and of all vertices (with normals)."""
+    v, f = fragment.vertices, fragment.faces
+    normals = vertex_normals(v, f, seg.normals, seg.areas)
+    frac_vertices = np.unique(f[seg.fracture_faces].ravel())
+    rng = np.random.default_rng(len(v))
+    if len(frac_vertices) > n_points:
+        frac_vertices = np.sort(rng.choice(frac_vertices, n_points, replace=False))
+    surf = np.arange(len(v))
+    if len(surf) > 2 * n_points:
+        surf = np.sort(rng.choice(surf, 2 * n_points, replace=False))
+    return SurfaceSample(v[frac_vertices], v[surf], normals[surf])
+
+
+def _as_prepared(x, params, backend, scale) -> Prepared:
+    if isinstance(x, Prepared):
+        if abs(x.scale - scale) <= 1e-9 * scale:
+            return x
+        x = x.fragment
+    return prepare(x, params, backend, scale=scale)
+
+
+def pair_scale(a, b, params: Params) -> float:
+    if params.unit:
+        return float(params.unit)
+    fa = a.fragment if isinstance(a, Prepared) else a
+    fb = b.fragment if isinstance(b, Prepared) else b
+    return 0.5 * (fa.size + fb.size)
+
+
+def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, scale: float | None = None) -> PairMatch:
+    """Find the rigid transform carrying fragment b onto fragment a, or say there is none.
+
+    a, b: Fragments or Prepared (prepared at the pair's scale, else prepared again).
+    heads: optional (contour_a, point_a, contour_b, point_b), the head nodes picked by hand.
+    """
+    params = params or Params()
+    be = resolve(backend)
+    scale = float(scale or pair_scale(a, b, params))
+    t_start = time.perf_counter()
+    pa = _as_prepared(a, params, be, scale)
+    pb = _as_prepared(b, params, be, scale)
+    timings = {"prepare": time.perf_counter() - t_start}
+
+    t0 = time.perf_counter()
+    if heads is not None:
+        ca, ia, cb, ib = (int(h) for h in heads)
+        if not (0 <= ca < len(pa.contours) and 0 <= cb < len(pb.contours)):
+            raise ValueError(f"head contour out of range: {ca} of {len(pa.contours)}, {cb} of {len(pb.contours)}")
+        if not (0 <= ia < len(pa.contours[ca].points) and 0 <= ib < len(pb.contours[cb].points)):
+            raise ValueError("head point out of range for its contour")
+        contour_pairs = [(ca, cb, ia, ib)]
+    else:
+        contour_pairs = [(i, j, None, None) for i in range(len(pa.contours)) for j in range(len(pb.contours))]
+
+    from .lcs import circular_lcs
+
+    rng = np.random.default_rng(12345)
+    inlier = params.ransac_inlier * scale
+    candidates = []  # (inliers, pose, ca, cb, pairs)
+    for ca, cb, ha, hb in contour_pairs:
+        A, B = pa.contours[ca], pb.contours[cb]
+        for m in circular_lcs(A.fused, B.fused, params.lcs_eps, be, ha, hb):
+            if m.length < 3:
+                continue
+            src, dst = B.points[m.pairs[:, 1]], A.points[m.pairs[:, 0]]
+            for pose, count in ransac_poses(src, dst, params.ransac_iterations, inlier, rng, keep=2):
+                candidates.append((count, pose, ca, cb, m.pairs))
+    candidates.sort(key=lambda c: -c[0])
+    candidates = candidates[: params.hypotheses]
+    timings["coarse"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    best = None
+    for count, pose, ca, cb, pairs in candidates:
+        fit = icp(pb.sample.fracture, pa.sample.fracture, pose, be, params.icp_iterations,
+                  params.icp_tolerance * scale, params.icp_reject * scale, params.contact_distance * scale)
+        ver = verify(pa.sample, pb.sample, fit.transform, be, params.contact_distance * scale,
+                     params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
+                     params.max_penetration)
+        rank = (ver.accepted, ver.overlap - ver.penetration)
+        if best is None or rank > best[0]:
+            best = (rank, fit, ver, ca, cb, pairs)
+    timings["icp+verify"] = time.perf_counter() - t1
+    timings["total"] = time.perf_counter() - t_start
+
+    if best is None:
+        reason = "no fracture contours" if not (pa.contours and pb.contours) else "no consistent LCS correspondences"
+        return PairMatch(np.eye(4), False, 0.0, float("inf"), 0.0, 0.0, np.zeros((0, 2), np.int64), -1, -1,
+                         reason, timings)
+    _, fit, ver, ca, cb, pairs = best
+    score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
+    return PairMatch(fit.transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
+                     pairs, ca, cb, ver.reason, timings)

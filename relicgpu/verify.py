@@ -1,0 +1,75 @@
+"""Verification of a candidate fit (new; the paper returns its fit unchecked).
+
+A fit is accepted only when the two fracture surfaces really touch over a real
+share of their area (overlap), closely (RMS residual over the contact), and
+neither fragment's surface dips into the other's solid (interpenetration, with
+the sign taken from the nearest vertex normal of the other fragment).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .icp import apply
+
+
+@dataclass(frozen=True)
+class Verification:
+    overlap: float  # share of the smaller fracture sample in contact
+    rmse: float  # RMS distance over contact points (absolute units)
+    penetration: float  # share of surface samples deeper than the tolerance inside the other fragment
+    accepted: bool
+    reason: str
+
+
+@dataclass(frozen=True)
+class SurfaceSample:
+    """Points of a fragment used by ICP and verification."""
+    fracture: np.ndarray  # (P,3) points on fracture surfaces
+    surface: np.ndarray  # (Q,3) points of the whole surface
+    normals: np.ndarray  # (Q,3) outward unit normals at `surface`
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, areas: np.ndarray) -> np.ndarray:
+    n = np.zeros_like(vertices)
+    weighted = face_normals * areas[:, None]
+    for c in range(3):
+        np.add.at(n, faces[:, c], weighted)
+    length = np.linalg.norm(n, axis=1)
+    return n / np.where(length > 0, length, 1)[:, None]
+
+
+def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, contact: float,
+           max_rmse: float, min_overlap: float, depth: float, max_penetration: float) -> Verification:
+    """Check b moved by `transform` against a (all lengths absolute)."""
+    b_frac = apply(transform, b.fracture)
+    _, d_ba = backend.nearest_neighbors(b_frac, a.fracture)
+    _, d_ab = backend.nearest_neighbors(a.fracture, b_frac)
+    d_ba, d_ab = np.asarray(d_ba, np.float64), np.asarray(d_ab, np.float64)
+    in_b, in_a = d_ba < contact, d_ab < contact
+    overlap = float(max(in_b.mean(), in_a.mean()))
+    both = np.concatenate([d_ba[in_b], d_ab[in_a]])
+    rmse = float(np.sqrt(np.mean(both ** 2))) if len(both) else float("inf")
+
+    pen_b = _inside_share(apply(transform, b.surface), a.surface, a.normals, depth, backend)
+    # a's surface in b's frame is the same check with b fixed
+    inv = np.linalg.inv(transform)
+    pen_a = _inside_share(apply(inv, a.surface), b.surface, b.normals, depth, backend)
+    penetration = float(max(pen_a, pen_b))
+
+    if overlap < min_overlap:
+        return Verification(overlap, rmse, penetration, False, f"overlap {overlap:.2f} below {min_overlap:.2f}")
+    if rmse > max_rmse:
+        return Verification(overlap, rmse, penetration, False, f"residual {rmse:.4g} above {max_rmse:.4g}")
+    if penetration > max_penetration:
+        return Verification(overlap, rmse, penetration, False,
+                            f"interpenetration {penetration:.3f} above {max_penetration:.3f}")
+    return Verification(overlap, rmse, penetration, True, "accepted")
+
+
+def _inside_share(points: np.ndarray, surface: np.ndarray, normals: np.ndarray, depth: float, backend) -> float:
+    idx, _ = backend.nearest_neighbors(points, surface)
+    idx = np.asarray(idx, np.int64)
+    signed = np.einsum("ij,ij->i", points - surface[idx], normals[idx])
+    return float(np.mean(signed < -depth)) if len(points) else 0.0
