@@ -1,0 +1,237 @@
+"""What the viewer serves: a workspace of cases, read without ever leaving it.
+
+A WORKSPACE is a directory of cases. A case is a directory holding
+`fragments/` (mesh files) and, once assembled, `assembly/assembly.json`,
+`assembly/assembly.glb` and `assembly/merged.stl`; `truth.json` from
+`relicgpu synth` may sit beside them. A WORKSPACE that has a `fragments/`
+folder itself is a single case.
+
+Nothing here builds a path from a request: cases and fragments are found by
+listing directories, and a request names one by its id, looked up in that
+listing. Every path is resolved (symlinks followed) and kept only when it lies
+inside the resolved workspace, so a symlink pointing out is never listed.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..io import MESH_SUFFIXES, POINT_SUFFIXES
+
+FRAGMENT_SUFFIXES = frozenset(MESH_SUFFIXES | POINT_SUFFIXES)
+ASSEMBLY_FILES = ("assembly.json", "assembly.glb", "merged.stl")
+
+
+class WorkspaceError(ValueError):
+    """The workspace itself is unusable (missing, not a directory)."""
+
+
+class AssemblyFileError(ValueError):
+    """assembly.json exists but cannot be used; the message names the file and the fault."""
+
+
+@dataclass(frozen=True)
+class FragmentEntry:
+    name: str  # the id in the API: the file stem (the whole file name where stems collide)
+    file: str  # file name inside fragments/
+    path: Path  # resolved, inside the workspace
+
+
+@dataclass(frozen=True)
+class Case:
+    id: str
+    path: Path  # resolved, inside the workspace
+
+    @property
+    def fragments_dir(self) -> Path:
+        return self.path / "fragments"
+
+    @property
+    def assembly_dir(self) -> Path:
+        return self.path / "assembly"
+
+
+@dataclass(frozen=True)
+class AssemblyView:
+    """The parts of assembly.json the viewer uses, keyed by fragment name."""
+    poses: dict  # name -> 4x4 nested list, or None when unplaced
+    groups: dict  # name -> int or None
+    matches: list  # [{"index", "a", "b", "transform", "score", "rmse", "overlap", "used"}]
+    meta: dict = field(default_factory=dict)  # backend, engine, timings
+    notes: tuple = ()
+
+
+class Workspace:
+    def __init__(self, root) -> None:
+        p = Path(root).expanduser()
+        if not p.exists():
+            raise WorkspaceError(f"{p}: no such directory")
+        if not p.is_dir():
+            raise WorkspaceError(f"{p}: not a directory")
+        self.root = p.resolve()
+        self.name = self.root.name or str(self.root)
+
+    def contains(self, path: Path) -> bool:
+        """True when path, with every symlink followed, lies inside the workspace."""
+        try:
+            return Path(path).resolve().is_relative_to(self.root)
+        except (OSError, RuntimeError):  # symlink loops
+            return False
+
+    def relative(self, path) -> str:
+        """A path for messages: relative to the workspace where it can be."""
+        try:
+            return str(Path(path).resolve().relative_to(self.root))
+        except (ValueError, OSError, RuntimeError):
+            return str(path)
+
+    def is_single_case(self) -> bool:
+        return _is_dir_inside(self.root / "fragments", self.root)
+
+    def cases(self) -> dict[str, Case]:
+        if self.is_single_case():
+            return {self.name: Case(self.name, self.root)}
+        found = {}
+        for child in sorted(self.root.iterdir(), key=lambda c: c.name):
+            if child.name.startswith(".") or not _is_dir_inside(child, self.root):
+                continue
+            if _is_dir_inside(child / "fragments", self.root):
+                found[child.name] = Case(child.name, child.resolve())
+        return found
+
+    def case(self, case_id) -> Case | None:
+        if not isinstance(case_id, str):
+            return None
+        return self.cases().get(case_id)
+
+    def fragments(self, case: Case) -> dict[str, FragmentEntry]:
+        d = case.fragments_dir
+        if not _is_dir_inside(d, self.root):
+            return {}
+        files = []
+        for p in sorted(d.iterdir(), key=lambda c: c.name):
+            if p.name.startswith(".") or p.suffix.lower() not in FRAGMENT_SUFFIXES:
+                continue
+            try:
+                real = p.resolve()
+            except (OSError, RuntimeError):
+                continue
+            if real.is_relative_to(self.root) and real.is_file():
+                files.append((p.name, real))
+        stems = [Path(n).stem for n, _ in files]
+        entries = {}
+        for (file, real), stem in zip(files, stems):
+            name = stem if stems.count(stem) == 1 else file
+            entries[name] = FragmentEntry(name, file, real)
+        return entries
+
+    def assembly_file(self, case: Case, name: str) -> Path | None:
+        """One of the assembly outputs of a case, when it exists inside the workspace."""
+        if name not in ASSEMBLY_FILES:
+            return None
+        p = case.assembly_dir / name
+        if p.is_file() and self.contains(p):
+            return p.resolve()
+        return None
+
+    def read_assembly(self, case: Case, entries: dict[str, FragmentEntry]) -> AssemblyView | None:
+        p = self.assembly_file(case, "assembly.json")
+        if p is None:
+            return None
+        label = f"{case.id}/assembly/assembly.json"
+        try:
+            doc = json.loads(p.read_text(encoding="utf-8"))
+        except UnicodeDecodeError:
+            raise AssemblyFileError(f"{label}: not UTF-8 text") from None
+        except json.JSONDecodeError as exc:
+            raise AssemblyFileError(f"{label}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+        return parse_assembly(doc, entries, label)
+
+
+def _is_dir_inside(p: Path, root: Path) -> bool:
+    try:
+        return p.is_dir() and p.resolve().is_relative_to(root)
+    except (OSError, RuntimeError):
+        return False
+
+
+def _entry_for(file_ref, entries: dict[str, FragmentEntry]) -> FragmentEntry | None:
+    """Match a fragment reference of assembly.json (file name, stem, or a path) to a listed file."""
+    if not isinstance(file_ref, str) or not file_ref:
+        return None
+    if file_ref in entries:
+        return entries[file_ref]
+    base = Path(file_ref.replace("\\", "/")).name
+    for e in entries.values():
+        if e.file == base:
+            return e
+    stem = Path(base).stem
+    hits = [e for e in entries.values() if Path(e.file).stem == stem]
+    return hits[0] if len(hits) == 1 else None
+
+
+def _matrix4(value, what: str) -> list:
+    if (not isinstance(value, list) or len(value) != 4
+            or not all(isinstance(r, list) and len(r) == 4 for r in value)):
+        raise AssemblyFileError(f"{what} is not a 4x4 matrix (a list of 4 rows of 4 numbers)")
+    out = []
+    for row in value:
+        for x in row:
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+                raise AssemblyFileError(f"{what} holds {x!r}, not a finite number")
+        out.append([float(x) for x in row])
+    return out
+
+
+def _number(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+def parse_assembly(doc, entries: dict[str, FragmentEntry], label: str = "assembly.json") -> AssemblyView:
+    """Check an assembly.json document (issue 5's format) against the listed fragments."""
+    if not isinstance(doc, dict):
+        raise AssemblyFileError(f"{label}: the top level must be a JSON object")
+    frags = doc.get("fragments")
+    if not isinstance(frags, list):
+        raise AssemblyFileError(f"{label}: 'fragments' must be a list")
+    poses: dict = {}
+    groups: dict = {}
+    notes: list[str] = []
+    for i, item in enumerate(frags):
+        if not isinstance(item, dict):
+            raise AssemblyFileError(f"{label}: fragments[{i}] must be an object")
+        entry = _entry_for(item.get("file"), entries)
+        if entry is None:
+            notes.append(f"{label}: fragments[{i}] names {item.get('file')!r}, which is not in fragments/")
+            continue
+        pose = item.get("pose")
+        poses[entry.name] = None if pose is None else _matrix4(pose, f"{label}: fragments[{i}].pose")
+        g = item.get("group")
+        groups[entry.name] = g if isinstance(g, int) and not isinstance(g, bool) else None
+    matches = []
+    raw_matches = doc.get("matches", [])
+    if not isinstance(raw_matches, list):
+        raise AssemblyFileError(f"{label}: 'matches' must be a list")
+    for i, m in enumerate(raw_matches):
+        if not isinstance(m, dict):
+            raise AssemblyFileError(f"{label}: matches[{i}] must be an object")
+        a, b = _entry_for(m.get("a"), entries), _entry_for(m.get("b"), entries)
+        if a is None or b is None:
+            notes.append(f"{label}: matches[{i}] names a fragment that is not in fragments/")
+            continue
+        matches.append({
+            "index": i,
+            "a": a.name,
+            "b": b.name,
+            "transform": _matrix4(m.get("transform"), f"{label}: matches[{i}].transform"),
+            "score": _number(m.get("score")),
+            "rmse": _number(m.get("rmse")),
+            "overlap": _number(m.get("overlap")),
+            "used": bool(m.get("used", False)),
+        })
+    meta = {k: doc[k] for k in ("version", "backend", "engine", "timings") if k in doc}
+    return AssemblyView(poses, groups, matches, meta, tuple(notes))
