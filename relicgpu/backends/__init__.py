@@ -59,9 +59,9 @@ def available_backends() -> list[str]:
     except Exception:
         pass
     try:
-        import pyopencl as cl
-        for p in cl.get_platforms():
-            candidates.append(f"opencl:{p.name}")
+        # through the backend module: it must repair PoCL before devices are listed
+        from .opencl import platform_names
+        candidates += [f"opencl:{name}" for name in platform_names()]
     except Exception:
         pass
     for name in candidates:

@@ -1,0 +1,231 @@
+"""Host-side preparation shared by the float32 device backends (Warp, OpenCL).
+
+The kernels see float32 data. Two things keep them faithful to the float64
+reference in `relicgpu.backends.numpy`:
+
+* Geometry is shifted to its bounding-box centre before the cast to float32,
+  so differences of nearby points keep their precision far from the origin.
+* The flag test `|a_i - b_j| < eps` is turned, for each a_i, into an interval
+  of float32 values `lo_i <= b <= hi_i` that holds exactly for the float32 b
+  where the float64 test holds. Rounding in float64 is monotone, so for a fixed
+  a_i the b that pass are one contiguous run of float32 values; its ends are
+  found by binary search over the ordered float32 bit patterns. The kernels then
+  compare b against [lo_i, hi_i] and agree with the reference bit for bit
+  whenever the b values are float32 numbers (a and eps may be any float64).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+# float32 bit patterns mapped to unsigned keys whose order is the order of the values
+_KEY_NEG_INF = 0x007FFFFF  # key of -inf
+_KEY_POS_INF = 0xFF800000  # key of +inf
+
+
+def _keys_to_float32(keys: np.ndarray) -> np.ndarray:
+    k = keys.astype(np.uint32)
+    bits = np.where(k & 0x80000000, k & 0x7FFFFFFF, ~k).astype(np.uint32)
+    return bits.view(np.float32)
+
+
+def _float32_to_keys(values: np.ndarray) -> np.ndarray:
+    bits = np.ascontiguousarray(values, np.float32).view(np.uint32)
+    return np.where(bits & 0x80000000, ~bits, bits | 0x80000000).astype(np.int64)
+
+
+def _search_keys(pred, a: np.ndarray) -> np.ndarray:
+    """Smallest key k in [key(-inf), key(+inf)] with pred(a, float32(k)) true, for an
+    up-set predicate, by binary search over all float32 keys; key(+inf) + 1 where none is."""
+    below = np.full(len(a), _KEY_NEG_INF - 1, np.int64)  # pred false here (sentinel)
+    above = np.full(len(a), _KEY_POS_INF + 1, np.int64)  # pred true here (sentinel)
+    while True:
+        open_ = np.nonzero(above - below > 1)[0]
+        if len(open_) == 0:
+            return above
+        mid = (below[open_] + above[open_]) // 2
+        ok = pred(a[open_], _keys_to_float32(mid).astype(np.float64))
+        above[open_[ok]] = mid[ok]
+        below[open_[~ok]] = mid[~ok]
+
+
+def _boundary(pred, a: np.ndarray, guess: np.ndarray) -> np.ndarray:
+    """Keys of the first float32 b where the up-set predicate pred(a, b) holds.
+
+    The float64 guess rounded to float32 is almost always the boundary or one
+    step beside it; the rest (huge or tiny values, NaN, odd eps) are searched."""
+    g = np.nan_to_num(guess.astype(np.float32), nan=0.0)
+    down = np.nextafter(g, np.float32(-np.inf))
+    up = np.nextafter(g, np.float32(np.inf))
+    p_down, p_g, p_up = (pred(a, c.astype(np.float64)) for c in (down, g, up))
+    keys = np.empty(len(a), np.int64)
+    at_g = ~p_down & p_g
+    at_up = ~p_g & p_up
+    keys[at_g] = _float32_to_keys(g[at_g])
+    keys[at_up] = _float32_to_keys(up[at_up])
+    rest = np.nonzero(~(at_g | at_up) | (g == up) | (g == down))[0]
+    if len(rest):
+        keys[rest] = _search_keys(pred, a[rest])
+    return keys
+
+
+def flag_intervals(a_values, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per value a_i, float32 (lo_i, hi_i) with: for every float32 b,
+    lo_i <= b <= hi_i  exactly when  float64 |a_i - b| < eps. An empty set gives
+    (+inf, -inf), which no b passes."""
+    a = np.ascontiguousarray(a_values, np.float64).ravel()
+    eps = float(eps)
+    with np.errstate(all="ignore"):
+        # |x| < eps  <=>  x < eps and x > -eps; fl(a - b) falls as b grows.
+        lo_keys = _boundary(lambda av, b: (av - b) < eps, a, a - eps)
+        # the largest b with a - b > -eps is one below the first b where it fails
+        hi_keys = _boundary(lambda av, b: ~((av - b) > -eps), a, a + eps) - 1
+    empty = (lo_keys > _KEY_POS_INF) | (hi_keys < _KEY_NEG_INF) | (lo_keys > hi_keys)
+    lo = np.full(len(a), np.inf, np.float32)
+    hi = np.full(len(a), -np.inf, np.float32)
+    keep = ~empty
+    lo[keep] = _keys_to_float32(lo_keys[keep])
+    hi[keep] = _keys_to_float32(hi_keys[keep])
+    return lo, hi
+
+
+def check_offsets(values: np.ndarray, offsets, what: str) -> np.ndarray:
+    off = np.asarray(offsets, np.int64).ravel()
+    if len(off) == 0 or off[0] < 0 or np.any(np.diff(off) < 0) or off[-1] > len(values):
+        raise ValueError(f"lcs_lengths: {what} offsets must be non-decreasing and within the {len(values)} values")
+    return off
+
+
+def check_pairs(pairs, n_a: int, n_b: int) -> np.ndarray:
+    p = np.asarray(pairs, np.int64).reshape(-1, 2)
+    if len(p) and (p.min(0) < 0).any() or len(p) and (p[:, 0].max() >= n_a or p[:, 1].max() >= n_b):
+        raise ValueError(f"lcs_lengths: pair indices out of range ({n_a} a-sequences, {n_b} b-sequences)")
+    return p
+
+
+def centred_float32(points: np.ndarray) -> np.ndarray:
+    """(N,3) float32 points shifted by their bounding-box centre (float64 arithmetic)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(p) == 0:
+        return np.zeros((0, 3), np.float32)
+    finite = np.isfinite(p).all(1)
+    if finite.any():
+        q = p[finite]
+        centre = 0.5 * (q.min(0) + q.max(0))
+    else:
+        centre = np.zeros(3)
+    return np.ascontiguousarray(p - centre, np.float32)
+
+
+# --- checks shared by the device backends (the reference raises on the same faults) ---
+
+def check_faces(faces: np.ndarray, n_vertices: int, what: str = "faces") -> np.ndarray:
+    f = np.asarray(faces)
+    if f.size == 0:
+        return np.zeros((0, 3), np.int32)
+    f = f.reshape(-1, 3)
+    if not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"face_normals: {what} must be integer vertex indices")
+    if f.min() < 0 or f.max() >= n_vertices:
+        raise IndexError(f"face_normals: {what} refer to vertex {int(f.max()) if f.max() >= n_vertices else int(f.min())}"
+                         f" but there are {n_vertices} vertices")
+    return np.ascontiguousarray(f, np.int32)
+
+
+def check_edge_faces(edge_faces, n_faces: int) -> np.ndarray:
+    e = np.asarray(edge_faces)
+    if e.size == 0:
+        return np.zeros((0, 2), np.int32)
+    e = e.reshape(-1, 2)
+    if e.min() < 0 or e.max() >= n_faces:
+        raise IndexError(f"edge_angles: edge_faces refer to faces outside 0..{n_faces - 1}")
+    return np.ascontiguousarray(e, np.int32)
+
+
+# --- LCS batch preparation ------------------------------------------------------
+
+class LcsBatch:
+    """Everything a device needs for one lcs_lengths call, in kernel layout.
+
+    thr (A,2) float32 flag intervals per a value; a_off, b_off int32 offsets;
+    b32 float32 b values followed by 64 NaN (a block may read past the last
+    sequence; NaN never passes a flag test); pairs (P,2) int32 ordered by b then a
+    so that neighbouring threads share a b block; order maps them back;
+    max_rows the longest a sequence used."""
+
+    def __init__(self, a_values, a_offsets, b_values, b_offsets, pairs, eps, sort_pairs: bool):
+        a = np.asarray(a_values, np.float64).ravel()
+        b = np.asarray(b_values, np.float64).ravel()
+        a_off = check_offsets(a, a_offsets, "a")
+        b_off = check_offsets(b, b_offsets, "b")
+        p = check_pairs(pairs, len(a_off) - 1, len(b_off) - 1)
+        if len(a_off) > 1 and a_off[-1] >= 2**31 or len(b_off) > 1 and b_off[-1] >= 2**31:
+            raise ValueError("lcs_lengths: more than 2^31 values in one batch")
+        self.n_pairs = len(p)
+        lo, hi = flag_intervals(a, eps)
+        self.thr = np.ascontiguousarray(np.stack([lo, hi], 1), np.float32).reshape(-1, 2)
+        if len(self.thr) == 0:
+            self.thr = np.zeros((1, 2), np.float32)
+        self.b32 = np.full(len(b) + 64, np.nan, np.float32)
+        self.b32[: len(b)] = b
+        self.a_off = a_off.astype(np.int32)
+        self.b_off = b_off.astype(np.int32)
+        if sort_pairs and len(p) > 1:
+            self.order = np.lexsort((p[:, 0], p[:, 1]))
+            p = p[self.order]
+        else:
+            self.order = None
+        self.pairs = np.ascontiguousarray(p, np.int32).reshape(-1, 2)
+        rows = a_off[1:] - a_off[:-1]
+        self.max_rows = int(rows[p[:, 0]].max()) if len(p) else 0
+
+    def carry_words(self) -> int:
+        return max(1, (self.max_rows + 31) // 32 * self.n_pairs)
+
+    def unsort(self, lengths: np.ndarray) -> np.ndarray:
+        lengths = np.asarray(lengths, np.int32)
+        if self.order is None:
+            return lengths
+        out = np.empty_like(lengths)
+        out[self.order] = lengths
+        return out
+
+
+# --- uniform grid sizing ----------------------------------------------------------
+
+MAX_CELLS_PER_POINT = 4
+
+
+def grid_dims(extent: np.ndarray, h: float) -> np.ndarray:
+    return (np.floor(np.asarray(extent, np.float64) / h).astype(np.int64) + 1).astype(np.int64)
+
+
+def choose_cell_size(extent: np.ndarray, n: int, occupied_at) -> float:
+    """Cell size of a dense grid over a target set of bounding-box `extent`, aiming at
+    about three targets per occupied cell with at most MAX_CELLS_PER_POINT cells per target.
+
+    Starts from the coarsest size that suits a volume, a surface or a curve of this
+    extent (the largest of the three), measures the occupancy with
+    `occupied_at(h) -> number of occupied cells`, and where cells are crowded
+    refines by the dimension the occupancy itself reveals."""
+    e = np.asarray(extent, np.float64)
+    top = float(e.max()) if len(e) else 0.0
+    if n <= 1 or top <= 0:
+        return 1.0 if top <= 0 else top
+    budget = MAX_CELLS_PER_POINT * n + 64
+
+    def fits(h: float) -> bool:
+        return float(np.prod(grid_dims(e, h).astype(np.float64))) <= budget
+
+    # the finest cell size the budget allows
+    h_min = max(float(np.cbrt(np.prod(np.maximum(e, top * 1e-9)) / budget)), top * 1e-9)
+    while not fits(h_min):
+        h_min *= 1.05
+    s = np.sort(e)[::-1]
+    h = max(np.cbrt(s[0] * s[1] * s[2] / n), np.sqrt(s[0] * s[1] / n), s[0] / n, h_min)
+    rho0 = n / max(occupied_at(h), 1)
+    h_fine = max(h / 4, h_min)
+    if rho0 <= 4.0 or h_fine > 0.9 * h:
+        return float(h)
+    rho1 = n / max(occupied_at(h_fine), 1)
+    dim = float(np.clip(np.log(rho0 / max(rho1, 1e-9)) / np.log(h / h_fine), 1.0, 3.0))
+    return float(max(h * (3.0 / rho0) ** (1.0 / dim), h_min))

@@ -1,0 +1,418 @@
+"""OpenCL backend (pyopencl): the four kernel families on any OpenCL platform,
+PoCL on a CPU (all cores) or a GPU vendor's driver.
+
+Kernels live in `relicgpu.kernels.opencl` (kernels/opencl/*.cl). `program(name)`
+builds a source once per process and caches it, with device-dependent options
+(`-DHAVE_FP64` where the device has doubles, `-DRELIC_VECTOR_MASKS` on CPUs);
+other stages can build their own kernels through `program`, `ctx` and `queue`.
+Same functions, signatures and return types as `relicgpu.backends.numpy`.
+
+Import this module before anything else touches pyopencl's devices: it repairs
+PoCL's CPU detection on processors newer than PoCL's LLVM (see
+`_repair_pocl_cpu_name`).
+"""
+from __future__ import annotations
+
+import ctypes
+import importlib.resources
+import importlib.util
+import mmap
+import os
+import platform as _platform
+import struct
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from . import _prep
+
+_REDUCE_THREADS = {"cpu": 256, "gpu": 8192}
+_BRUTE_PAIRS = {"cpu": 4_000_000, "gpu": 50_000_000}
+_pocl_cpu_name_buffer = None  # keeps the patched CPU name alive
+
+
+def _host_llvm_cpu() -> str:
+    """An LLVM CPU name that the host can run, from /proc/cpuinfo flags."""
+    flags: set[str] = set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+                break
+    except OSError:
+        pass
+    if {"avx512f", "avx512bw", "avx512vl", "avx512dq", "avx512cd"} <= flags:
+        return "skylake-avx512"
+    if {"avx2", "fma", "bmi2"} <= flags:
+        return "haswell"
+    if "sse4_2" in flags:
+        return "nehalem"
+    return "x86-64"
+
+
+def _repair_pocl_cpu_name() -> str | None:
+    """Work around PoCL 3.x on CPUs its LLVM does not know (here: AMD Zen 5).
+
+    PoCL asks LLVM for the host CPU name; an LLVM older than the CPU answers
+    "generic", which clang then rejects ("unknown target CPU 'generic'", pocl
+    issue #1049), so every program build fails. The PoCL wheel links LLVM
+    statically with -Bsymbolic, so the name cannot be interposed; instead the
+    exported `pocl_get_llvm_cpu_name` is overwritten in memory with a jump to
+    strdup(<a name LLVM knows>), chosen from the CPU's feature flags. This runs
+    only when PoCL reports "generic", only on x86-64 Linux, and must happen
+    before pyopencl first lists devices. Set RELICGPU_POCL_NO_REPAIR=1 to skip.
+    Returns the name written, or None when nothing was done."""
+    global _pocl_cpu_name_buffer
+    if _pocl_cpu_name_buffer is not None or os.environ.get("RELICGPU_POCL_NO_REPAIR"):
+        return None
+    if _platform.system() != "Linux" or _platform.machine() != "x86_64":
+        return None
+    spec = importlib.util.find_spec("pyopencl")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    libdir = Path(list(spec.submodule_search_locations)[0]) / ".libs"
+    candidates = sorted(libdir.glob("libpocl*.so*")) if libdir.is_dir() else []
+    if not candidates:
+        return None
+    try:
+        lib = ctypes.CDLL(str(candidates[0]), mode=ctypes.RTLD_GLOBAL)
+        func = lib.pocl_get_llvm_cpu_name
+    except (OSError, AttributeError):
+        return None
+    func.restype = ctypes.c_void_p
+    libc = ctypes.CDLL(None)
+    libc.free.argtypes = [ctypes.c_void_p]
+    ptr = func()
+    current = ctypes.string_at(ptr).decode() if ptr else ""
+    libc.free(ptr)
+    if current != "generic":
+        return None
+    name = _host_llvm_cpu()
+    _pocl_cpu_name_buffer = ctypes.create_string_buffer(name.encode())
+    strdup = ctypes.cast(libc.strdup, ctypes.c_void_p).value
+    addr = ctypes.cast(func, ctypes.c_void_p).value
+    # mov rdi, <name>; mov rax, strdup; jmp rax  (a tail call: the caller frees the copy)
+    code = (b"\x48\xbf" + struct.pack("<Q", ctypes.addressof(_pocl_cpu_name_buffer))
+            + b"\x48\xb8" + struct.pack("<Q", strdup) + b"\xff\xe0")
+    page = addr & ~(mmap.PAGESIZE - 1)
+    span = (addr + len(code) - page + mmap.PAGESIZE - 1) // mmap.PAGESIZE * mmap.PAGESIZE
+    libc.mprotect.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    if libc.mprotect(ctypes.c_void_p(page), span, 7) != 0:
+        _pocl_cpu_name_buffer = None
+        return None
+    ctypes.memmove(addr, code, len(code))
+    libc.mprotect(ctypes.c_void_p(page), span, 5)
+    return name
+
+
+_REPAIRED_POCL_CPU = _repair_pocl_cpu_name()
+
+
+def platform_names() -> list[str]:
+    """Names of the OpenCL platforms that have at least one device."""
+    import pyopencl as cl
+
+    names = []
+    for p in cl.get_platforms():
+        try:
+            if p.get_devices():
+                names.append(p.name)
+        except cl.Error:
+            continue
+    return names
+
+
+def _pick_platform(cl, wanted: str | None):
+    platforms = cl.get_platforms()
+    if not platforms:
+        raise RuntimeError("no OpenCL platform is installed")
+    if wanted is None:
+        for p in platforms:
+            try:
+                if p.get_devices():
+                    return p
+            except cl.Error:
+                continue
+        raise RuntimeError("no OpenCL platform has a device")
+    for p in platforms:
+        if p.name == wanted:
+            return p
+    for p in platforms:
+        if wanted.lower() in p.name.lower():
+            return p
+    raise RuntimeError(f"no OpenCL platform named {wanted!r}; found {[p.name for p in platforms]}")
+
+
+class OpenCLBackend:
+    def __init__(self, platform: str | None = None):
+        import pyopencl as cl
+
+        self.cl = cl
+        plat = _pick_platform(cl, platform)
+        devices = plat.get_devices()
+        gpus = [d for d in devices if d.type & cl.device_type.GPU]
+        self.device = (gpus or devices)[0]
+        self.kind = "gpu" if self.device.type & cl.device_type.GPU else "cpu"
+        self.ctx = cl.Context([self.device])
+        self.queue = cl.CommandQueue(self.ctx)
+        self.platform_name = plat.name
+        self.name = f"opencl:{plat.name}"
+        self.device_name = self.device.name.strip()
+        self.has_fp64 = bool(self.device.double_fp_config)
+        self.local_size = min(64 if self.kind == "cpu" else 128, self.device.max_work_group_size)
+        self.real = np.float64 if self.has_fp64 else np.float32
+        self._programs: dict[tuple[str, str], object] = {}
+        self._kernels: dict[tuple[str, str, str], object] = {}
+        self._lock = threading.RLock()  # kernel objects hold their arguments: one caller at a time
+
+    def __repr__(self) -> str:
+        return f"OpenCLBackend({self.platform_name!r})"
+
+    # --- programs -----------------------------------------------------------------
+
+    def default_options(self) -> str:
+        opts = []
+        if self.has_fp64:
+            opts.append("-DHAVE_FP64=1")
+        if self.kind == "cpu":
+            opts.append("-DRELIC_VECTOR_MASKS=1")
+        return " ".join(opts)
+
+    def program(self, source_filename: str, options: str | None = None):
+        """The built program of a kernel source, compiled once per process.
+
+        `source_filename` names a file of relicgpu.kernels.opencl (e.g. "lcs.cl")
+        or is a path to any .cl file; `options` defaults to `default_options()`."""
+        options = self.default_options() if options is None else options
+        key = (str(source_filename), options)
+        with self._lock:
+            prog = self._programs.get(key)
+            if prog is None:
+                path = Path(source_filename)
+                if path.is_absolute():
+                    source = path.read_text()
+                else:
+                    source = importlib.resources.files("relicgpu.kernels.opencl").joinpath(str(path)).read_text()
+                prog = self.cl.Program(self.ctx, source).build(options=options.split())
+                self._programs[key] = prog
+            return prog
+
+    def kernel(self, source_filename: str, name: str):
+        key = (source_filename, self.default_options(), name)
+        k = self._kernels.get(key)
+        if k is None:
+            k = self.cl.Kernel(self.program(source_filename), name)
+            self._kernels[key] = k
+        return k
+
+    # --- helpers ------------------------------------------------------------------
+
+    def _to_device(self, array: np.ndarray):
+        mf = self.cl.mem_flags
+        a = np.ascontiguousarray(array)
+        if a.nbytes == 0:
+            a = np.zeros(1, a.dtype)
+        return self.cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+
+    def _empty(self, nbytes: int):
+        return self.cl.Buffer(self.ctx, self.cl.mem_flags.READ_WRITE, size=max(int(nbytes), 4))
+
+    def _from_device(self, buf, shape, dtype) -> np.ndarray:
+        out = np.empty(shape, dtype)
+        if out.size:
+            self.cl.enqueue_copy(self.queue, out, buf, is_blocking=True)
+        return out
+
+    def _run(self, source: str, name: str, n: int, *args, local: int | None = None):
+        """Enqueue kernel `name` over n work-items, padded to whole work-groups (the kernels
+        check their bounds). A fixed work-group size matters on PoCL, which compiles a
+        kernel anew for every work-group size it meets. `args` stay referenced until the
+        enqueue: OpenCL retains a buffer only once it is enqueued."""
+        k = self.kernel(source, name)
+        k.set_args(*args)
+        local = local or self.local_size
+        size = max((n + local - 1) // local * local, local)
+        self.cl.enqueue_nd_range_kernel(self.queue, k, (size,), (local,))
+
+    # --- family 1 -----------------------------------------------------------------
+
+    def face_normals(self, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        v = _prep.centred_float32(vertices)
+        f = _prep.check_faces(faces, len(v))
+        if len(f) == 0:
+            return np.zeros((0, 3)), np.zeros(0)
+        with self._lock:
+            normals = self._empty(12 * len(f))
+            areas = self._empty(4 * len(f))
+            self._run("normals.cl", "face_normals", len(f), self._to_device(v), self._to_device(f),
+                      np.int32(len(f)), normals, areas)
+            n = self._from_device(normals, (len(f), 3), np.float32)
+            a = self._from_device(areas, len(f), np.float32)
+        return n.astype(np.float64), a.astype(np.float64)
+
+    def edge_angles(self, normals: np.ndarray, edge_faces: np.ndarray) -> np.ndarray:
+        n = np.ascontiguousarray(np.asarray(normals, np.float64).reshape(-1, 3), np.float32)
+        e = _prep.check_edge_faces(edge_faces, len(n))
+        if len(e) == 0:
+            return np.zeros(0)
+        with self._lock:
+            out = self._empty(4 * len(e))
+            self._run("normals.cl", "edge_angles", len(e), self._to_device(n), self._to_device(e),
+                      np.int32(len(e)), out)
+            return self._from_device(out, len(e), np.float32).astype(np.float64)
+
+    # --- family 2 -----------------------------------------------------------------
+
+    def contour_features(self, points: np.ndarray, k: int, stride: int) -> np.ndarray:
+        p = _prep.centred_float32(points)
+        if len(p) == 0:
+            return np.zeros((0, 5))
+        with self._lock:
+            out = self._empty(20 * len(p))
+            self._run("curvature.cl", "contour_features", len(p), self._to_device(p), np.int32(len(p)),
+                      np.int32(k), np.int32(stride), out)
+            return self._from_device(out, (len(p), 5), np.float32).astype(np.float64)
+
+    # --- family 3 -----------------------------------------------------------------
+
+    def flag_matrix(self, a: np.ndarray, b: np.ndarray, eps: float) -> np.ndarray:
+        a = np.asarray(a, np.float64).ravel()
+        b = np.asarray(b, np.float64).ravel()
+        if len(a) == 0 or len(b) == 0:
+            return np.zeros((len(a), len(b)), bool)
+        lo, hi = _prep.flag_intervals(a, eps)
+        thr = np.ascontiguousarray(np.stack([lo, hi], 1))
+        with self._lock:
+            out = self._empty(len(a) * len(b))
+            args = (self._to_device(thr), self._to_device(b.astype(np.float32)), np.int32(len(a)),
+                    np.int32(len(b)), out)  # held until enqueued: a released buffer must not reach the kernel
+            k = self.kernel("lcs.cl", "flag_matrix")
+            k.set_args(*args)
+            cols = (len(b) + self.local_size - 1) // self.local_size * self.local_size
+            self.cl.enqueue_nd_range_kernel(self.queue, k, (cols, len(a)), (self.local_size, 1))
+            return self._from_device(out, (len(a), len(b)), np.uint8).astype(bool)
+
+    def lcs_lengths(self, a_values, a_offsets, b_values, b_offsets, pairs, eps: float) -> np.ndarray:
+        batch = _prep.LcsBatch(a_values, a_offsets, b_values, b_offsets, pairs, eps,
+                               sort_pairs=self.kind == "gpu")
+        if batch.n_pairs == 0:
+            return np.zeros(0, np.int32)
+        with self._lock:
+            out = self._empty(4 * batch.n_pairs)
+            carry = self._empty(4 * batch.carry_words())
+            self._run("lcs.cl", "lcs_lengths", batch.n_pairs,
+                      self._to_device(batch.thr), self._to_device(batch.a_off), self._to_device(batch.b32),
+                      self._to_device(batch.b_off), self._to_device(batch.pairs), carry,
+                      np.int32(batch.n_pairs), out)
+            lengths = self._from_device(out, batch.n_pairs, np.int32)
+        return batch.unsort(lengths)
+
+    # --- family 4 -----------------------------------------------------------------
+
+    def nearest_neighbors(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        src = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
+        dst = np.ascontiguousarray(np.asarray(target, np.float64).reshape(-1, 3))
+        if len(dst) == 0:
+            raise ValueError("nearest_neighbors: the target point set is empty")
+        if len(src) == 0:
+            return np.zeros(0, np.int32), np.zeros(0)
+        ns, nt = len(src), len(dst)
+        with self._lock:
+            src_d = self._to_device(src.astype(self.real, copy=False))
+            dst_d = self._to_device(dst.astype(self.real, copy=False))
+            lo, hi = self._bounds(dst_d, nt)
+            self._bounds(src_d, ns)
+            centre = 0.5 * (lo + hi)
+            c = [self.real(x) for x in centre]
+            src32, dst32 = self._empty(12 * ns), self._empty(12 * nt)
+            self._run("icp.cl", "shift_to_float32", ns, src_d, np.int32(ns), *c, src32)
+            self._run("icp.cl", "shift_to_float32", nt, dst_d, np.int32(nt), *c, dst32)
+            idx = self._empty(4 * ns)
+            if ns * nt <= _BRUTE_PAIRS[self.kind] or nt <= 64:
+                self._run("icp.cl", "brute_query", ns, src32, np.int32(ns), dst32, np.int32(nt), idx,
+                          local=min(128, self.local_size))
+            else:
+                self._grid_query(src32, ns, dst32, nt, lo - centre, hi - lo, idx)
+            dist = self._empty(np.dtype(self.real).itemsize * ns)
+            self._run("icp.cl", "exact_distance", ns, src_d, dst_d, idx, np.int32(ns), dist)
+            return self._from_device(idx, ns, np.int32), self._from_device(dist, ns, self.real).astype(np.float64)
+
+    def _bounds(self, points_d, n: int):
+        threads = min(n, _REDUCE_THREADS[self.kind])
+        lo, hi = self._empty(24 * threads), self._empty(24 * threads)
+        bad = self._empty(4 * threads)
+        self._run("icp.cl", "bounds_partial", threads, points_d, np.int32(n), np.int32(threads), lo, hi, bad)
+        if self._from_device(bad, threads, np.int32).sum():
+            raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
+        lo = self._from_device(lo, (threads, 3), self.real).astype(np.float64)
+        hi = self._from_device(hi, (threads, 3), self.real).astype(np.float64)
+        return lo.min(0), hi.max(0)
+
+    def _grid_query(self, src32, ns: int, dst32, nt: int, origin: np.ndarray, extent: np.ndarray, idx):
+        cl = self.cl
+        o = [np.float32(x) for x in origin]
+        occupied = self._empty(4)
+        state = {"counts": None, "cells": 0}
+
+        def count(points, n: int, h: float):
+            dims = _prep.grid_dims(extent, h)
+            cells = int(np.prod(dims))
+            if state["counts"] is None or state["cells"] < cells + 1:
+                state["counts"], state["cells"] = self._empty(4 * (cells + 1)), cells + 1
+            cl.enqueue_fill_buffer(self.queue, state["counts"], np.int32(0), 0, 4 * (cells + 1))
+            cl.enqueue_fill_buffer(self.queue, occupied, np.int32(0), 0, 4)
+            self._run("icp.cl", "grid_count", n, points, np.int32(n), *o, np.float32(1.0 / h),
+                      *[np.int32(d) for d in dims], state["counts"], occupied)
+            return cells, dims
+
+        def occupied_at(h: float) -> int:
+            count(dst32, nt, h)
+            return int(self._from_device(occupied, 1, np.int32)[0])
+
+        h = _prep.choose_cell_size(extent, nt, occupied_at)
+
+        def sort_into_cells(points, n: int):
+            cells, dims = count(points, n, h)
+            counts = self._from_device(state["counts"], cells, np.int32)
+            starts = np.zeros(cells + 1, np.int32)
+            np.cumsum(counts, out=starts[1:])
+            starts_d = self._to_device(starts)
+            cl.enqueue_fill_buffer(self.queue, state["counts"], np.int32(0), 0, 4 * (cells + 1))
+            sorted_points, sorted_ids = self._empty(12 * n), self._empty(4 * n)
+            self._run("icp.cl", "grid_scatter", n, points, np.int32(n), *o, np.float32(1.0 / h),
+                      *[np.int32(d) for d in dims], starts_d, state["counts"], sorted_points, sorted_ids)
+            return starts_d, sorted_points, sorted_ids, dims
+
+        starts, sorted_points, sorted_ids, dims = sort_into_cells(dst32, nt)
+        _, sorted_queries, query_ids, _ = sort_into_cells(src32, ns)
+        self._run("icp.cl", "grid_query", ns, sorted_queries, query_ids, np.int32(ns), *o, np.float32(h),
+                  np.float32(1.0 / h), *[np.int32(d) for d in dims], starts, sorted_points, sorted_ids, idx)
+
+    def cross_covariance(self, source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None):
+        s = np.asarray(source, np.float64).reshape(-1, 3)
+        t = np.asarray(target, np.float64).reshape(-1, 3)
+        if len(s) != len(t):
+            raise ValueError(f"cross_covariance: {len(s)} source points but {len(t)} target points")
+        w = np.ones(len(s)) if weights is None else np.asarray(weights, np.float64).ravel()
+        if len(w) != len(s):
+            raise ValueError(f"cross_covariance: {len(w)} weights for {len(s)} point pairs")
+        n = len(s)
+        if n == 0:
+            return np.zeros(3), np.zeros(3), np.zeros((3, 3)), 0.0
+        threads = min(n, _REDUCE_THREADS[self.kind])
+        r = self.real
+        with self._lock:
+            s_d, t_d, w_d = (self._to_device(x.astype(r, copy=False)) for x in (s, t, w))
+            part = self._empty(7 * threads * np.dtype(r).itemsize)
+            self._run("icp.cl", "weighted_sums_partial", threads, s_d, t_d, w_d, np.int32(n), np.int32(threads), part)
+            sums = self._from_device(part, (threads, 7), r).astype(np.float64).sum(0)
+            wsum = float(sums[0])
+            if wsum <= 0:
+                return np.zeros(3), np.zeros(3), np.zeros((3, 3)), 0.0
+            cs, ct = sums[1:4] / wsum, sums[4:7] / wsum
+            part = self._empty(9 * threads * np.dtype(r).itemsize)
+            self._run("icp.cl", "covariance_partial", threads, s_d, t_d, w_d, *[r(x) for x in cs],
+                      *[r(x) for x in ct], np.int32(n), np.int32(threads), part)
+            h = self._from_device(part, (threads, 9), r).astype(np.float64).sum(0).reshape(3, 3)
+        return cs, ct, h, wsum

@@ -1,0 +1,233 @@
+"""NVIDIA Warp backend: the four kernel families on `cpu` or `cuda:N`.
+
+Kernels live in `relicgpu.kernels.warp` (kernels/warp/*.py); this module moves
+numpy arrays to the device and back and does the small host-side steps (flag
+intervals, grid sizing, final float64 sums). Same functions, signatures and
+return types as `relicgpu.backends.numpy`. Warp compiles each kernel module once
+per device and caches the binary on disk (~/.cache/warp).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import _prep
+
+# Warp's CPU device runs a launch on one thread; brute force beats building a
+# grid below these many (source x target) pairs.
+_BRUTE_PAIRS = {"cpu": 2_000_000, "cuda": 50_000_000}
+_REDUCE_THREADS = {"cpu": 64, "cuda": 8192}
+
+
+class WarpBackend:
+    def __init__(self, device: str):
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.init()
+        dev = wp.get_device(device)  # raises for a device that is not there
+        if dev.is_cuda and not wp.is_cuda_available():
+            raise RuntimeError("no CUDA driver")
+        self.wp = wp
+        self.device = str(dev.alias)
+        self.kind = "cpu" if dev.is_cpu else "cuda"
+        self.name = "warp-cpu" if dev.is_cpu else f"warp-cuda:{dev.ordinal}"
+        self.device_name = dev.name if dev.is_cuda else "CPU (one thread per launch)"
+        from relicgpu.kernels.warp import curvature, icp, lcs, normals
+
+        self._k_normals, self._k_curv, self._k_lcs, self._k_icp = normals, curvature, lcs, icp
+
+    def __repr__(self) -> str:
+        return f"WarpBackend({self.device!r})"
+
+    # --- helpers -----------------------------------------------------------------
+
+    def _array(self, data, dtype):
+        return self.wp.array(data, dtype=dtype, device=self.device)
+
+    def _launch(self, kernel, dim, inputs):
+        self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    # --- family 1 ----------------------------------------------------------------
+
+    def face_normals(self, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        wp = self.wp
+        v = _prep.centred_float32(vertices)
+        f = _prep.check_faces(faces, len(v))
+        if len(f) == 0:
+            return np.zeros((0, 3)), np.zeros(0)
+        normals = wp.empty(len(f), dtype=wp.vec3, device=self.device)
+        areas = wp.empty(len(f), dtype=wp.float32, device=self.device)
+        self._launch(self._k_normals.face_normals_kernel, len(f),
+                     [self._array(v, wp.vec3), self._array(f, wp.vec3i), normals, areas])
+        return normals.numpy().astype(np.float64), areas.numpy().astype(np.float64)
+
+    def edge_angles(self, normals: np.ndarray, edge_faces: np.ndarray) -> np.ndarray:
+        wp = self.wp
+        n = np.ascontiguousarray(np.asarray(normals, np.float64).reshape(-1, 3), np.float32)
+        e = _prep.check_edge_faces(edge_faces, len(n))
+        if len(e) == 0:
+            return np.zeros(0)
+        out = wp.empty(len(e), dtype=wp.float32, device=self.device)
+        self._launch(self._k_normals.edge_angles_kernel, len(e),
+                     [self._array(n, wp.vec3), self._array(e, wp.vec2i), out])
+        return out.numpy().astype(np.float64)
+
+    # --- family 2 ----------------------------------------------------------------
+
+    def contour_features(self, points: np.ndarray, k: int, stride: int) -> np.ndarray:
+        wp = self.wp
+        p = _prep.centred_float32(points)
+        if len(p) == 0:
+            return np.zeros((0, 5))
+        out = wp.empty((len(p), 5), dtype=wp.float32, device=self.device)
+        self._launch(self._k_curv.contour_features_kernel, len(p),
+                     [self._array(p, wp.vec3), int(k), int(stride), out])
+        return out.numpy().astype(np.float64)
+
+    # --- family 3 ----------------------------------------------------------------
+
+    def flag_matrix(self, a: np.ndarray, b: np.ndarray, eps: float) -> np.ndarray:
+        wp = self.wp
+        a = np.asarray(a, np.float64).ravel()
+        b = np.asarray(b, np.float64).ravel()
+        if len(a) == 0 or len(b) == 0:
+            return np.zeros((len(a), len(b)), bool)
+        lo, hi = _prep.flag_intervals(a, eps)
+        thr = np.ascontiguousarray(np.stack([lo, hi], 1))
+        out = wp.empty((len(a), len(b)), dtype=wp.uint8, device=self.device)
+        self._launch(self._k_lcs.flag_matrix_kernel, (len(a), len(b)),
+                     [self._array(thr, wp.vec2), self._array(b.astype(np.float32), wp.float32), out])
+        return out.numpy().astype(bool)
+
+    def lcs_lengths(self, a_values, a_offsets, b_values, b_offsets, pairs, eps: float) -> np.ndarray:
+        wp = self.wp
+        batch = _prep.LcsBatch(a_values, a_offsets, b_values, b_offsets, pairs, eps,
+                               sort_pairs=self.kind == "cuda")
+        if batch.n_pairs == 0:
+            return np.zeros(0, np.int32)
+        out = wp.empty(batch.n_pairs, dtype=wp.int32, device=self.device)
+        carry = wp.empty(batch.carry_words(), dtype=wp.uint32, device=self.device)
+        self._launch(self._k_lcs.lcs_lengths_kernel, batch.n_pairs, [
+            self._array(batch.thr, wp.vec2), self._array(batch.a_off, wp.int32),
+            self._array(batch.b32, wp.float32), self._array(batch.b_off, wp.int32),
+            self._array(batch.pairs, wp.vec2i), carry, batch.n_pairs, out])
+        return batch.unsort(out.numpy())
+
+    # --- family 4 ----------------------------------------------------------------
+
+    def nearest_neighbors(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        src = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
+        dst = np.ascontiguousarray(np.asarray(target, np.float64).reshape(-1, 3))
+        if len(dst) == 0:
+            raise ValueError("nearest_neighbors: the target point set is empty")
+        if len(src) == 0:
+            return np.zeros(0, np.int32), np.zeros(0)
+        wp = self.wp
+        src_d = self._array(src, wp.vec3d)
+        dst_d = self._array(dst, wp.vec3d)
+        idx, dist = self.nearest_neighbors_device(src_d, dst_d)
+        return idx.numpy(), dist.numpy()
+
+    def _bounds(self, points_d):
+        """float64 (lo, hi) of finite points; raises on NaN or infinite coordinates."""
+        wp = self.wp
+        n = points_d.shape[0]
+        threads = min(n, _REDUCE_THREADS[self.kind])
+        lo = wp.empty(threads, dtype=wp.vec3d, device=self.device)
+        hi = wp.empty(threads, dtype=wp.vec3d, device=self.device)
+        bad = wp.empty(threads, dtype=wp.int32, device=self.device)
+        self._launch(self._k_icp.bounds_partial, threads, [points_d, n, lo, hi, bad])
+        if bad.numpy().sum():
+            raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
+        return lo.numpy().min(0), hi.numpy().max(0)
+
+    def nearest_neighbors_device(self, src_d, dst_d):
+        """Nearest neighbours of device arrays (vec3d); returns device arrays (idx int32, dist float64)."""
+        wp = self.wp
+        ns, nt = src_d.shape[0], dst_d.shape[0]
+        lo, hi = self._bounds(dst_d)
+        self._bounds(src_d)
+        centre = 0.5 * (lo + hi)
+        src32 = wp.empty(ns, dtype=wp.vec3, device=self.device)
+        dst32 = wp.empty(nt, dtype=wp.vec3, device=self.device)
+        self._launch(self._k_icp.shift_to_float32, ns, [src_d, wp.vec3d(*centre), src32])
+        self._launch(self._k_icp.shift_to_float32, nt, [dst_d, wp.vec3d(*centre), dst32])
+        idx = wp.empty(ns, dtype=wp.int32, device=self.device)
+        if ns * nt <= _BRUTE_PAIRS[self.kind] or nt <= 64:
+            self._launch(self._k_icp.brute_query, ns, [src32, dst32, idx])
+        else:
+            self._grid_query(src32, dst32, lo - centre, hi - lo, idx)
+        dist = wp.empty(ns, dtype=wp.float64, device=self.device)
+        self._launch(self._k_icp.exact_distance, ns, [src_d, dst_d, idx, dist])
+        return idx, dist
+
+    def _grid_query(self, src32, dst32, origin: np.ndarray, extent: np.ndarray, idx):
+        wp = self.wp
+        k = self._k_icp
+        ns, nt = src32.shape[0], dst32.shape[0]
+        origin32 = wp.vec3(*origin)
+        occupied = wp.zeros(1, dtype=wp.int32, device=self.device)
+        counts = None
+
+        def count(points, h: float):
+            nonlocal counts
+            dims = _prep.grid_dims(extent, h)
+            cells = int(np.prod(dims))
+            if counts is None or counts.shape[0] < cells + 1:
+                counts = wp.zeros(cells + 1, dtype=wp.int32, device=self.device)
+            else:
+                counts.zero_()
+            occupied.zero_()
+            self._launch(k.grid_count, points.shape[0],
+                         [points, origin32, 1.0 / h, wp.vec3i(*dims), counts, occupied])
+            return cells
+
+        def occupied_at(h: float) -> int:
+            count(dst32, h)
+            return int(occupied.numpy()[0])
+
+        h = _prep.choose_cell_size(extent, nt, occupied_at)
+        dims = wp.vec3i(*_prep.grid_dims(extent, h))
+
+        def sort_into_cells(points):
+            cells = count(points, h)
+            starts = wp.empty(cells + 1, dtype=wp.int32, device=self.device)
+            wp.utils.array_scan(counts[: cells + 1], starts, inclusive=False)
+            counts.zero_()
+            sorted_points = wp.empty(points.shape[0], dtype=wp.vec3, device=self.device)
+            sorted_ids = wp.empty(points.shape[0], dtype=wp.int32, device=self.device)
+            self._launch(k.grid_scatter, points.shape[0], [points, origin32, 1.0 / h, dims, starts, counts,
+                                                           sorted_points, sorted_ids])
+            return starts, sorted_points, sorted_ids
+
+        starts, sorted_points, sorted_ids = sort_into_cells(dst32)
+        _, sorted_queries, query_ids = sort_into_cells(src32)
+        self._launch(k.grid_query, ns, [sorted_queries, query_ids, origin32, float(h), 1.0 / h, dims,
+                                        starts, sorted_points, sorted_ids, idx])
+
+    def cross_covariance(self, source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None):
+        wp = self.wp
+        s = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
+        t = np.ascontiguousarray(np.asarray(target, np.float64).reshape(-1, 3))
+        if len(s) != len(t):
+            raise ValueError(f"cross_covariance: {len(s)} source points but {len(t)} target points")
+        w = np.ones(len(s)) if weights is None else np.ascontiguousarray(np.asarray(weights, np.float64).ravel())
+        if len(w) != len(s):
+            raise ValueError(f"cross_covariance: {len(w)} weights for {len(s)} point pairs")
+        n = len(s)
+        if n == 0:
+            return np.zeros(3), np.zeros(3), np.zeros((3, 3)), 0.0
+        threads = min(n, _REDUCE_THREADS[self.kind])
+        s_d, t_d, w_d = self._array(s, wp.vec3d), self._array(t, wp.vec3d), self._array(w, wp.float64)
+        part = wp.empty((threads, 7), dtype=wp.float64, device=self.device)
+        self._launch(self._k_icp.weighted_sums_partial, threads, [s_d, t_d, w_d, n, part])
+        sums = part.numpy().sum(0)
+        wsum = float(sums[0])
+        if wsum <= 0:
+            return np.zeros(3), np.zeros(3), np.zeros((3, 3)), 0.0
+        cs, ct = sums[1:4] / wsum, sums[4:7] / wsum
+        part = wp.empty((threads, 9), dtype=wp.float64, device=self.device)
+        self._launch(self._k_icp.covariance_partial, threads,
+                     [s_d, t_d, w_d, wp.vec3d(*cs), wp.vec3d(*ct), n, part])
+        h = part.numpy().sum(0).reshape(3, 3)
+        return cs, ct, h, wsum
