@@ -31,6 +31,15 @@ static inline int3 cell_of(const float3 p, const float3 origin, const float inv_
     return convert_int3(clamp(q, (float3)(0.0f), convert_float3(dims - 1)));
 }
 
+/* distance along one axis from q to the slab of a cell (targets all lie inside
+   the grid), less a margin for the float32 rounding that placed them in cells */
+static inline float axis_gap(const float q, const float origin, const float h, const int cell)
+{
+    const float lo = origin + (float)cell * h;
+    const float gap = fmax(fmax(lo - q, q - (lo + h)), 0.0f);
+    return fmax(gap - 1.0e-4f * h - 2.0e-7f * (fabs(q) + fabs(origin)), 0.0f);
+}
+
 static inline int cell_index(const int3 c, const int3 dims)
 {
     return c.x + dims.x * (c.y + dims.y * c.z);
@@ -112,20 +121,31 @@ __kernel void grid_query(__global const float *queries, __global const int *quer
         const int x0 = max(c.x - r, 0), x1 = min(c.x + r, dims.x - 1);
         for (int z = z0; z <= z1; ++z) {
             const bool z_face = z == c.z - r || z == c.z + r;
+            const float dz = axis_gap(q.z, oz, h, z);
             for (int y = y0; y <= y1; ++y) {
+                /* skip rows whose box is no nearer than the best so far (a tie may go
+                   either way), and within a row keep only the cells that can be nearer */
+                const float dy = axis_gap(q.y, oy, h, y);
+                const float room = best - (dy * dy + dz * dz);
+                if (!(room > 0.0f)) continue;
+                const float reach = sqrt(room) + 1.0e-4f * h;
+                const int xa = (int)clamp(floor((q.x - reach - ox) * inv_h), -1.0f, (float)dims.x);
+                const int xb = (int)clamp(floor((q.x + reach - ox) * inv_h), -1.0f, (float)dims.x);
                 const int row = dims.x * (y + dims.y * z);
                 /* a row on the shell's faces is new from x0 to x1 (one contiguous run
                    of points); inside the shell only its two end cells are new */
                 const bool face = z_face || y == c.y - r || y == c.y + r;
                 for (int part = 0; part < 2; ++part) {
-                    int j0 = 0, j1 = 0;
+                    int lo = 1, hi = 0;
                     if (face) {
-                        if (part == 0) { j0 = starts[row + x0]; j1 = starts[row + x1 + 1]; }
+                        if (part == 0) { lo = max(x0, xa); hi = min(x1, xb); }
                     } else {
                         const int x = c.x - r + part * 2 * r;
-                        if (x >= 0 && x < dims.x) { j0 = starts[row + x]; j1 = starts[row + x + 1]; }
+                        if (x >= 0 && x < dims.x && x >= xa && x <= xb) { lo = x; hi = x; }
                     }
-                    for (int j = j0; j < j1; ++j) {
+                    if (lo > hi) continue;
+                    const int j1 = starts[row + hi + 1];
+                    for (int j = starts[row + lo]; j < j1; ++j) {
                         const float3 d = vload3(j, sorted_points) - q;
                         const float d2 = dot(d, d);
                         const int k = sorted_ids[j];

@@ -32,6 +32,15 @@ def cell_of(p: wp.vec3, origin: wp.vec3, inv_h: float, dims: wp.vec3i) -> wp.vec
 
 
 @wp.func
+def axis_gap(q: float, origin: float, h: float, cell: int) -> float:
+    # distance along one axis from q to the slab of a cell (targets all lie inside
+    # the grid), less a margin for the float32 rounding that placed them in cells
+    lo = origin + float(cell) * h
+    gap = wp.max(wp.max(lo - q, q - (lo + h)), 0.0)
+    return wp.max(gap - 1.0e-4 * h - 2.0e-7 * (wp.abs(q) + wp.abs(origin)), 0.0)
+
+
+@wp.func
 def cell_index(x: int, y: int, z: int, dims: wp.vec3i) -> int:
     return x + dims[0] * (y + dims[1] * z)
 
@@ -135,31 +144,41 @@ def grid_query(
         x0 = wp.max(c[0] - r, 0)
         x1 = wp.min(c[0] + r, dims[0] - 1)
         for z in range(z0, z1 + 1):
-            z_edge = z == c[2] - r or z == c[2] + r
+            z_face = z == c[2] - r or z == c[2] + r
+            dz = axis_gap(q[2], origin[2], h, z)
             for y in range(y0, y1 + 1):
-                row = dims[0] * (y + dims[1] * z)
-                # a row on the shell's faces is new from x0 to x1 (one contiguous run
-                # of points); inside the shell only its two end cells are new
-                face = z_edge or y == c[1] - r or y == c[1] + r
-                for part in range(2):
-                    j0 = int(0)
-                    j1 = int(0)
-                    if face:
-                        if part == 0:
-                            j0 = starts[row + x0]
-                            j1 = starts[row + x1 + 1]
-                    else:
-                        x = c[0] - r + part * 2 * r
-                        if x >= 0 and x < dims[0]:
-                            j0 = starts[row + x]
-                            j1 = starts[row + x + 1]
-                    for j in range(j0, j1):
-                        d = sorted_points[j] - q
-                        d2 = wp.dot(d, d)
-                        k = sorted_ids[j]
-                        if d2 < best or (d2 == best and k < best_id):
-                            best = d2
-                            best_id = k
+                # skip rows whose box is no nearer than the best so far (a tie may go
+                # either way), and within a row keep only the cells that can be nearer
+                dy = axis_gap(q[1], origin[1], h, y)
+                room = best - (dy * dy + dz * dz)
+                if room > 0.0:
+                    reach = wp.sqrt(room) + 1.0e-4 * h
+                    xa = int(wp.clamp(wp.floor((q[0] - reach - origin[0]) * inv_h), -1.0, float(dims[0])))
+                    xb = int(wp.clamp(wp.floor((q[0] + reach - origin[0]) * inv_h), -1.0, float(dims[0])))
+                    row = dims[0] * (y + dims[1] * z)
+                    # a row on the shell's faces is new from x0 to x1 (one contiguous run
+                    # of points); inside the shell only its two end cells are new
+                    face = z_face or y == c[1] - r or y == c[1] + r
+                    for part in range(2):
+                        lo = int(1)
+                        hi = int(0)
+                        if face:
+                            if part == 0:
+                                lo = wp.max(x0, xa)
+                                hi = wp.min(x1, xb)
+                        else:
+                            x = c[0] - r + part * 2 * r
+                            if x >= 0 and x < dims[0] and x >= xa and x <= xb:
+                                lo = x
+                                hi = x
+                        if lo <= hi:
+                            for j in range(starts[row + lo], starts[row + hi + 1]):
+                                d = sorted_points[j] - q
+                                d2 = wp.dot(d, d)
+                                k = sorted_ids[j]
+                                if d2 < best or (d2 == best and k < best_id):
+                                    best = d2
+                                    best_id = k
         # distance from q to the nearest cell not visited yet
         bound = float(3.0e38)
         more = False

@@ -103,16 +103,22 @@ def check_pairs(pairs, n_a: int, n_b: int) -> np.ndarray:
 
 
 def centred_float32(points: np.ndarray) -> np.ndarray:
-    """(N,3) float32 points shifted by their bounding-box centre (float64 arithmetic)."""
+    """(N,3) float32 points shifted by their bounding-box centre, computed in float64.
+
+    The centre is rounded to a multiple of a power of two near a sixteenth of the
+    extent, so points on a coarse grid (integers, halves, ...) stay exact: faces
+    that are exactly degenerate in float64 stay exactly degenerate in float32."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     if len(p) == 0:
         return np.zeros((0, 3), np.float32)
     finite = np.isfinite(p).all(1)
+    centre = np.zeros(3)
     if finite.any():
-        q = p[finite]
-        centre = 0.5 * (q.min(0) + q.max(0))
-    else:
-        centre = np.zeros(3)
+        q = p if finite.all() else p[finite]
+        lo, hi = q.min(0), q.max(0)
+        extent = float((hi - lo).max())
+        step = 2.0 ** np.floor(np.log2(extent / 16)) if extent > 0 else 1.0
+        centre = np.round(0.5 * (lo + hi) / step) * step
     return np.ascontiguousarray(p - centre, np.float32)
 
 

@@ -265,14 +265,14 @@ class OpenCLBackend:
     # --- family 2 -----------------------------------------------------------------
 
     def contour_features(self, points: np.ndarray, k: int, stride: int) -> np.ndarray:
-        p = _prep.centred_float32(points)
+        p = np.ascontiguousarray(np.asarray(points, np.float64).reshape(-1, 3), self.real)
         if len(p) == 0:
             return np.zeros((0, 5))
         with self._lock:
-            out = self._empty(20 * len(p))
+            out = self._empty(5 * len(p) * p.itemsize)
             self._run("curvature.cl", "contour_features", len(p), self._to_device(p), np.int32(len(p)),
                       np.int32(k), np.int32(stride), out)
-            return self._from_device(out, (len(p), 5), np.float32).astype(np.float64)
+            return self._from_device(out, (len(p), 5), self.real).astype(np.float64)
 
     # --- family 3 -----------------------------------------------------------------
 

@@ -76,13 +76,13 @@ class WarpBackend:
 
     def contour_features(self, points: np.ndarray, k: int, stride: int) -> np.ndarray:
         wp = self.wp
-        p = _prep.centred_float32(points)
+        p = np.ascontiguousarray(np.asarray(points, np.float64).reshape(-1, 3))
         if len(p) == 0:
             return np.zeros((0, 5))
-        out = wp.empty((len(p), 5), dtype=wp.float32, device=self.device)
+        out = wp.empty((len(p), 5), dtype=wp.float64, device=self.device)
         self._launch(self._k_curv.contour_features_kernel, len(p),
-                     [self._array(p, wp.vec3), int(k), int(stride), out])
-        return out.numpy().astype(np.float64)
+                     [self._array(p, wp.vec3d), int(k), int(stride), out])
+        return out.numpy()
 
     # --- family 3 ----------------------------------------------------------------
 
