@@ -19,7 +19,9 @@ def _backend_names() -> list[str]:
     try:
         import warp as wp
 
-        wp.config.quiet = True
+        from relicgpu.backends.warp import _quiet_warp
+
+        _quiet_warp(wp)
         wp.init()
         cuda = [f"warp-cuda:{d.ordinal}" for d in wp.get_cuda_devices()]
     except Exception:

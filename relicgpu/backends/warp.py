@@ -18,11 +18,17 @@ _BRUTE_PAIRS = {"cpu": 2_000_000, "cuda": 50_000_000}
 _REDUCE_THREADS = {"cpu": 64, "cuda": 8192}
 
 
+def _quiet_warp(wp) -> None:
+    """No banner and no per-module load lines on stdout (they would mix with CLI output)."""
+    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+
+
 class WarpBackend:
     def __init__(self, device: str):
         import warp as wp
 
-        wp.config.quiet = True
+        _quiet_warp(wp)
         wp.init()
         dev = wp.get_device(device)  # raises for a device that is not there
         if dev.is_cuda and not wp.is_cuda_available():
