@@ -20,7 +20,7 @@ const IDENTITY_Q = new THREE.Quaternion();
 export class FragmentScene {
   constructor(host) {
     this.host = host;
-    this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+    this.renderer = new THREE.WebGLRenderer({ antialias: true });
     this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
     this.renderer.setClearColor(BACKGROUND, 1);
     host.appendChild(this.renderer.domElement);

@@ -42,7 +42,8 @@ from .workspace import AssemblyFileError, Workspace, WorkspaceError
 
 MAX_BODY_BYTES = 64 * 1024  # requests carry a few names and numbers
 CACHE_FRAGMENTS = 64  # loaded meshes and prepared fragments kept in memory
-SSE_KEEPALIVE_S = 15.0
+SSE_TICK_S = 2.0
+SSE_MAX_RATE_HZ = 10
 LOOPBACK_NAMES = {"localhost", "127.0.0.1", "::1", "[::1]"}
 
 
@@ -74,23 +75,26 @@ def _default_match_pair(prepared_a, prepared_b, heads, scale):
     return relicgpu.match_pair(prepared_a, prepared_b, heads=heads, scale=scale)
 
 
-def run_assembly(fragments_dir: Path, out_dir: Path, report) -> dict:
-    """Assemble a case's fragments with relicgpu.assemble and write its outputs to out_dir."""
+def run_assembly(fragments_dir: Path, out_dir: Path, report, progress=None) -> dict:
+    """Assemble a case's fragments with relicgpu.assemble, writing its outputs to out_dir.
+
+    progress: passed on to relicgpu.assemble (default: a callback feeding report; the
+    terminal's tqdm bars when True).
+    """
     import relicgpu
 
     report(stage="assembling", message=f"assembling {fragments_dir.parent.name}")
-    result = relicgpu.assemble(fragments_dir, progress=progress_callback(report))
-    report(stage="writing", message=f"writing {out_dir.name}/")
-    result.write(out_dir)
-    doc = json.loads((out_dir / "assembly.json").read_text())
-    placed = [f for f in doc.get("fragments", []) if f.get("pose") is not None]
-    groups = {f.get("group") for f in placed}
-    return {"fragments": len(doc.get("fragments", [])), "placed": len(placed), "groups": len(groups),
-            "matches_used": sum(1 for m in doc.get("matches", []) if m.get("used"))}
+    result = relicgpu.assemble(fragments_dir, out_dir=out_dir,
+                               progress=progress_callback(report) if progress is None else progress)
+    stats = getattr(result, "stats", {}) or {}
+    return {k: stats[k] for k in ("fragments", "placed", "groups", "accepted", "used") if k in stats} | {
+        "timings": _timings(getattr(result, "timings", None))}
 
 
 def progress_callback(report):
-    """A `progress` argument for relicgpu.assemble: called as progress(stage, done, total)."""
+    """A `progress` argument for relicgpu.assemble, for when it calls progress(stage, done, total).
+
+    (A plain truthy value to an assemble that only draws tqdm bars on a terminal.)"""
     def progress(*args, **kwargs):
         stage = kwargs.get("stage", args[0] if args and isinstance(args[0], str) else None)
         nums = [a for a in args if isinstance(a, (int, float)) and not isinstance(a, bool)]
@@ -523,16 +527,15 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
             if job is None:
                 yield _sse({"state": "idle", "job": None})
                 return
-            seen = -1
+            # The latest state on every change, at most SSE_MAX_RATE_HZ times a second, and
+            # at least every SSE_TICK_S (the elapsed time moves on while a stage runs).
             while True:
                 snap = job.snapshot()
-                if snap["seq"] != seen:
-                    seen = snap["seq"]
-                    yield _sse(snap, event_id=seen)
-                    if snap["state"] in FINAL_STATES:
-                        return
-                elif not jobs.wait(job, seen, SSE_KEEPALIVE_S):
-                    yield ": keepalive\n\n"
+                yield _sse(snap, event_id=snap["seq"])
+                if snap["state"] in FINAL_STATES:
+                    return
+                time.sleep(1.0 / SSE_MAX_RATE_HZ)
+                jobs.wait(job, snap["seq"], SSE_TICK_S)
 
         return Response(stream(latest), mimetype="text/event-stream",
                         headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
