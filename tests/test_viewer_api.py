@@ -581,31 +581,44 @@ needs_pipeline = pytest.mark.skipif(importlib.util.find_spec("relicgpu.pipeline"
 
 
 @needs_pipeline
-def test_real_prepare_and_match_through_the_api(box, monkeypatch):
-    """relicgpu.prepare and relicgpu.match_pair behind the API, on the box pieces (numpy backend)."""
+def test_real_prepare_and_match_through_the_api(tmp_path, monkeypatch):
+    """relicgpu.prepare and relicgpu.match_pair behind the API, on a synthetic broken slab."""
+    synth = pytest.importorskip("relicgpu.synth")
     monkeypatch.setenv("RELICGPU_BACKEND", "numpy")
-    ws, truth = box
-    client = create_app(ws).test_client()
-    r = client.get("/api/cases/box/fragments/piece_1/contours")
-    assert r.status_code == 200, r.get_json()
-    body = r.get_json()
-    mesh = client.get("/api/cases/box/fragments/piece_1/mesh").get_json()
-    assert len(body["face_region"]) == mesh["n_faces"]
-    assert len(body["region_is_fracture"]) == max(body["face_region"]) + 1
-    assert body["contours"], "no contours on a piece with two cut faces"
-    frag = load_fragment(truth["dir"] / "fragments" / "piece_1.ply")
-    for c in body["contours"]:
-        _, dist, _ = trimesh.proximity.closest_point(frag.to_trimesh(), np.array(c["points"]))
-        assert dist.max() < 1e-3 * frag.size
+    result = synth.generate(shape="slab", pieces=2, seed=0)
+    synth.write(result, tmp_path / "slab")
+    client = create_app(tmp_path).test_client()
+    names = [f["name"] for f in client.get("/api/cases/slab/fragments").get_json()["fragments"]]
+    assert len(names) == 2
+    bodies = {}
+    for name in names:
+        r = client.get(f"/api/cases/slab/fragments/{name}/contours")
+        assert r.status_code == 200, r.get_json()
+        body = bodies[name] = r.get_json()
+        mesh = client.get(f"/api/cases/slab/fragments/{name}/mesh").get_json()
+        assert len(body["face_region"]) == mesh["n_faces"]
+        assert len(body["region_is_fracture"]) == max(body["face_region"]) + 1
+        assert any(body["region_is_fracture"]) and body["contours"], f"{name}: no fracture contours"
+        frag = load_fragment(tmp_path / "slab" / "fragments" / f"{name}.ply")
+        for c in body["contours"]:
+            _, dist, _ = trimesh.proximity.closest_point(frag.to_trimesh(), np.array(c["points"]))
+            assert dist.max() < 0.01 * frag.size
 
-    a = client.get("/api/cases/box/fragments/piece_0/contours").get_json()
-    heads = [0, 0, 0, len(body["contours"][0]["points"]) - 1]
-    assert a["contours"]
-    r = client.post("/api/match", json={"case": "box", "a": "piece_0", "b": "piece_1", "heads": heads})
+    a, b = names
+    heads = [0, 0, 0, len(bodies[b]["contours"][0]["points"]) - 1]
+    r = client.post("/api/match", json={"case": "slab", "a": a, "b": b, "heads": heads})
     assert r.status_code == 200, r.get_json()
     m = r.get_json()
     assert m["heads"] == heads and isinstance(m["accepted"], bool) and m["reason"]
-    r = client.post("/api/match", json={"case": "box", "a": "piece_0", "b": "piece_1", "heads": [0, 0, 0, 10**6]})
+    r = client.post("/api/match", json={"case": "slab", "a": a, "b": b, "heads": [0, 0, 0, 10**6]})
     assert r.status_code == 400 and "head node out of range" in r.get_json()["error"]
-    # (no check of the pose: a flat cut through a box is a centrally symmetric parallelogram,
-    # so the pieces fit two ways and either is a right answer for the fracture surfaces)
+    # the automatic match of two touching pieces: accepted, and the true pose
+    m = client.post("/api/match", json={"case": "slab", "a": a, "b": b}).get_json()
+    assert m["accepted"], m["reason"]
+    fb = load_fragment(tmp_path / "slab" / "fragments" / f"{b}.ply")
+    pose = {f.name: p for f, p in zip(result.fragments, result.poses)}
+    expected = np.linalg.inv(pose[a]) @ pose[b]
+    t = np.asarray(m["transform"])
+    moved = fb.vertices @ t[:3, :3].T + t[:3, 3]
+    true = fb.vertices @ expected[:3, :3].T + expected[:3, 3]
+    assert np.sqrt(((moved - true) ** 2).sum(1).mean()) < 0.01 * fb.size

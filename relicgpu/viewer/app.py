@@ -41,7 +41,7 @@ from .jobs import FINAL_STATES, JobBusy, JobRunner
 from .workspace import AssemblyFileError, Workspace, WorkspaceError
 
 MAX_BODY_BYTES = 64 * 1024  # requests carry a few names and numbers
-CACHE_FRAGMENTS = 64  # loaded meshes and prepared fragments kept in memory
+CACHE_FRAGMENTS = 128  # loaded meshes, and prepared fragments, kept in memory
 SSE_TICK_S = 2.0
 SSE_MAX_RATE_HZ = 10
 LOOPBACK_NAMES = {"localhost", "127.0.0.1", "::1", "[::1]"}
@@ -136,13 +136,18 @@ class _Cache:
             with self._lock:
                 if key in self._data:
                     return self._data[key]
-            value = compute()
+            try:
+                value = compute()
+            except BaseException:
+                with self._lock:
+                    self._key_locks.pop(key, None)
+                raise
             with self._lock:
+                self._key_locks.pop(key, None)
                 self._data[key] = value
                 self._data.move_to_end(key)
                 while len(self._data) > self._limit:
                     self._data.popitem(last=False)
-                self._key_locks.pop(key, None)
             return value
 
 
@@ -258,6 +263,8 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
     }
     meshes = _Cache(CACHE_FRAGMENTS)
     prepared_cache = _Cache(CACHE_FRAGMENTS)
+    scales: dict = {}
+    scales_lock = threading.Lock()
     compute_slots = threading.BoundedSemaphore(max(1, min(2, os.cpu_count() or 1)))
     jobs = JobRunner()
     app.extensions["relicgpu.jobs"] = jobs
@@ -325,8 +332,18 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
         return meshes.get(_file_key(entry.path), load)
 
     def case_scale(case) -> float:
-        sizes = [fragment_of(e).size for e in ws.fragments(case).values()]
-        return float(np.median(sizes)) if sizes else 1.0
+        entries = list(ws.fragments(case).values())
+        key = tuple(_file_key(e.path) for e in entries)  # stat only: no mesh reloads once known
+        with scales_lock:
+            if key in scales:
+                return scales[key]
+        sizes = [fragment_of(e).size for e in entries]
+        scale = float(np.median(sizes)) if sizes else 1.0
+        with scales_lock:
+            if len(scales) > 256:
+                scales.clear()
+            scales[key] = scale
+        return scale
 
     def prepared_of(case, entry):
         if not capabilities["prepare"]:
