@@ -53,6 +53,15 @@ def flag_matrix_kernel(
     flags[i, j] = wp.where(inside(b[j], t[0], t[1]), wp.uint8(1), wp.uint8(0))
 
 
+@wp.func
+def add_carry(x: wp.uint32, y: wp.uint32, cin: wp.uint32) -> wp.vec2ui:
+    # (x + y + cin) mod 2^32 and its carry out, in 32-bit integer operations
+    t = x + y
+    s = t + cin
+    c = wp.where(t < x or s < t, wp.uint32(1), wp.uint32(0))
+    return wp.vec2ui(s, c)
+
+
 @wp.kernel
 def lcs_lengths_kernel(
     thr: wp.array(dtype=wp.vec2),  # (lo, hi) per a value
@@ -64,6 +73,8 @@ def lcs_lengths_kernel(
     n_pairs: int,
     out: wp.array(dtype=wp.int32),
 ):
+    # The 64-bit row words are kept as two 32-bit halves: GPUs have no 64-bit
+    # integer unit, and 32-bit masks let each flag cost one select and half an OR.
     p = wp.tid()
     ia = pairs[p][0]
     ib = pairs[p][1]
@@ -71,7 +82,7 @@ def lcs_lengths_kernel(
     m = a_off[ia + 1] - a0
     b0 = b_off[ib]
     n = b_off[ib + 1] - b0
-    ones = ~wp.uint64(0)
+    ones = ~wp.uint32(0)
     total = int(0)
     nblocks = (n + 63) // 64
     for blk in range(nblocks):
@@ -80,10 +91,16 @@ def lcs_lengths_kernel(
         for k in range(64):
             bb[k] = b_vals[base + k]
         valid = n - blk * 64
-        vmask = ones
+        mask_lo = ones
+        mask_hi = ones
         if valid < 64:
-            vmask = (wp.uint64(1) << wp.uint64(valid)) - wp.uint64(1)
-        v = ones
+            if valid < 32:
+                mask_lo = (wp.uint32(1) << wp.uint32(valid)) - wp.uint32(1)
+                mask_hi = wp.uint32(0)
+            else:
+                mask_hi = (wp.uint32(1) << wp.uint32(valid - 32)) - wp.uint32(1)
+        v_lo = ones
+        v_hi = ones
         cin_word = wp.uint32(0)
         cout_word = wp.uint32(0)
         for i in range(m):
@@ -93,17 +110,17 @@ def lcs_lengths_kernel(
             t = thr[a0 + i]
             lo = t[0]
             hi = t[1]
-            mlo = row_mask(bb, 0, lo, hi)
-            mhi = row_mask(bb, 32, lo, hi)
-            mm = ((wp.uint64(mhi) << wp.uint64(32)) | wp.uint64(mlo)) & vmask
-            cin = wp.uint64((cin_word >> bit) & wp.uint32(1))
-            s = v + (v & mm) + cin
-            cout = wp.where(s < v or (cin == wp.uint64(1) and s == v), wp.uint32(1), wp.uint32(0))
-            v = s | (v & ~mm)
-            cout_word = cout_word | (cout << bit)
+            m_lo = row_mask(bb, 0, lo, hi) & mask_lo
+            m_hi = row_mask(bb, 32, lo, hi) & mask_hi
+            # V' = (V + (V & M)) | (V & ~M), carrying from the previous block's word
+            r_lo = add_carry(v_lo, v_lo & m_lo, (cin_word >> bit) & wp.uint32(1))
+            r_hi = add_carry(v_hi, v_hi & m_hi, r_lo[1])
+            v_lo = r_lo[0] | (v_lo & ~m_lo)
+            v_hi = r_hi[0] | (v_hi & ~m_hi)
+            cout_word = cout_word | (r_hi[1] << bit)
             if bit == wp.uint32(31) or i == m - 1:
                 if blk < nblocks - 1:
                     carry[(i // 32) * n_pairs + p] = cout_word
                 cout_word = wp.uint32(0)
-        total += wp.bit_count(~v)
+        total += wp.bit_count(~v_lo) + wp.bit_count(~v_hi)
     out[p] = total

@@ -48,24 +48,27 @@ def _search_keys(pred, a: np.ndarray) -> np.ndarray:
         below[open_[~ok]] = mid[~ok]
 
 
-def _boundary(pred, a: np.ndarray, guess: np.ndarray) -> np.ndarray:
-    """Keys of the first float32 b where the up-set predicate pred(a, b) holds.
+def _boundary(pred, a: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First float32 b where the up-set predicate pred(a, b) holds: (values, found).
 
-    The float64 guess rounded to float32 is almost always the boundary or one
-    step beside it; the rest (huge or tiny values, NaN, odd eps) are searched."""
-    g = np.nan_to_num(guess.astype(np.float32), nan=0.0)
+    The float64 guess rounded to float32 is almost always the boundary or the next
+    float32 up; the rest (huge or tiny values, NaN, odd eps) are found by binary
+    search over all float32 keys; `found` is False where no float32 b qualifies."""
+    g = guess.astype(np.float32)
     down = np.nextafter(g, np.float32(-np.inf))
     up = np.nextafter(g, np.float32(np.inf))
     p_down, p_g, p_up = (pred(a, c.astype(np.float64)) for c in (down, g, up))
-    keys = np.empty(len(a), np.int64)
-    at_g = ~p_down & p_g
-    at_up = ~p_g & p_up
-    keys[at_g] = _float32_to_keys(g[at_g])
-    keys[at_up] = _float32_to_keys(up[at_up])
-    rest = np.nonzero(~(at_g | at_up) | (g == up) | (g == down))[0]
+    at_g = p_g & ~p_down & (down < g)
+    at_up = p_up & ~p_g & (g < up)
+    value = np.where(at_g, g, up)
+    found = at_g | at_up
+    rest = np.nonzero(~found)[0]
     if len(rest):
-        keys[rest] = _search_keys(pred, a[rest])
-    return keys
+        keys = _search_keys(pred, a[rest])
+        inside = keys <= _KEY_POS_INF
+        value[rest[inside]] = _keys_to_float32(keys[inside])
+        found[rest[inside]] = True
+    return value, found
 
 
 def flag_intervals(a_values, eps: float) -> tuple[np.ndarray, np.ndarray]:
@@ -76,15 +79,14 @@ def flag_intervals(a_values, eps: float) -> tuple[np.ndarray, np.ndarray]:
     eps = float(eps)
     with np.errstate(all="ignore"):
         # |x| < eps  <=>  x < eps and x > -eps; fl(a - b) falls as b grows.
-        lo_keys = _boundary(lambda av, b: (av - b) < eps, a, a - eps)
-        # the largest b with a - b > -eps is one below the first b where it fails
-        hi_keys = _boundary(lambda av, b: ~((av - b) > -eps), a, a + eps) - 1
-    empty = (lo_keys > _KEY_POS_INF) | (hi_keys < _KEY_NEG_INF) | (lo_keys > hi_keys)
-    lo = np.full(len(a), np.inf, np.float32)
-    hi = np.full(len(a), -np.inf, np.float32)
-    keep = ~empty
-    lo[keep] = _keys_to_float32(lo_keys[keep])
-    hi[keep] = _keys_to_float32(hi_keys[keep])
+        lo, has_lo = _boundary(lambda av, b: (av - b) < eps, a, a - eps)
+        # the largest b with a - b > -eps is the float32 below the first b where it fails
+        stop, has_stop = _boundary(lambda av, b: ~((av - b) > -eps), a, a + eps)
+    hi = np.where(has_stop, np.nextafter(stop, np.float32(-np.inf)), np.float32(np.inf))
+    # no b passes: lo missing, or the b where a - b > -eps fails comes first
+    empty = ~has_lo | (has_stop & (stop <= lo))
+    lo[empty] = np.inf
+    hi[empty] = -np.inf
     return lo, hi
 
 

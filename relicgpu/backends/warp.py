@@ -106,18 +106,31 @@ class WarpBackend:
         return out.numpy().astype(bool)
 
     def lcs_lengths(self, a_values, a_offsets, b_values, b_offsets, pairs, eps: float) -> np.ndarray:
-        wp = self.wp
         batch = _prep.LcsBatch(a_values, a_offsets, b_values, b_offsets, pairs, eps,
                                sort_pairs=self.kind == "cuda")
         if batch.n_pairs == 0:
             return np.zeros(0, np.int32)
-        out = wp.empty(batch.n_pairs, dtype=wp.int32, device=self.device)
-        carry = wp.empty(batch.carry_words(), dtype=wp.uint32, device=self.device)
-        self._launch(self._k_lcs.lcs_lengths_kernel, batch.n_pairs, [
-            self._array(batch.thr, wp.vec2), self._array(batch.a_off, wp.int32),
-            self._array(batch.b32, wp.float32), self._array(batch.b_off, wp.int32),
-            self._array(batch.pairs, wp.vec2i), carry, batch.n_pairs, out])
-        return batch.unsort(out.numpy())
+        return batch.unsort(self.lcs_run(self.lcs_upload(batch)).numpy())
+
+    def lcs_upload(self, batch: "_prep.LcsBatch") -> dict:
+        """The device arrays of a prepared batch (split out so a benchmark can time the kernel alone)."""
+        wp = self.wp
+        return {"n_pairs": batch.n_pairs,
+                "args": [self._array(batch.thr, wp.vec2), self._array(batch.a_off, wp.int32),
+                         self._array(batch.b32, wp.float32), self._array(batch.b_off, wp.int32),
+                         self._array(batch.pairs, wp.vec2i),
+                         wp.empty(batch.carry_words(), dtype=wp.uint32, device=self.device)]}
+
+    def lcs_run(self, uploaded: dict):
+        """Launch the LCS kernel on uploaded arrays; returns the device array of lengths."""
+        wp = self.wp
+        n = uploaded["n_pairs"]
+        out = wp.empty(n, dtype=wp.int32, device=self.device)
+        # one thread per pair and few pairs per block, so that a batch of ~10^4 pairs
+        # still spreads over every multiprocessor of a large GPU
+        wp.launch(self._k_lcs.lcs_lengths_kernel, dim=n, inputs=[*uploaded["args"], n, out],
+                  device=self.device, block_dim=32 if self.kind == "cuda" else 256)
+        return out
 
     # --- family 4 ----------------------------------------------------------------
 
