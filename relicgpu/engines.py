@@ -1,0 +1,123 @@
+"""Where the per-fragment and per-pair work of an assembly runs.
+
+An engine maps a module-level function over a list of jobs and hands each
+result back to the caller as soon as it is ready (the caller caches it on disk,
+so an interrupted run loses nothing finished). A job is a payload plus the keys
+of the shared objects it needs; the function is called as
+`fn(payload, *[objects[k] for k in needs])` and returns a picklable result.
+
+* `local`: in this process; a thread pool when the backend releases the GIL
+  (its `releases_gil` attribute), else one job after the other.
+* `ray`: each job is a Ray task. `address` joins a running cluster, otherwise a
+  local Ray starts with `workers` CPUs (or the machine's). Shared objects go
+  into the object store once; a task takes one GPU where the cluster has GPUs;
+  a task lost with its worker or node is retried by Ray (`max_retries`).
+  Scheduling, retries and data movement are all Ray's.
+"""
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass
+from typing import Any, Callable
+
+ENGINES = ("local", "ray")
+MAX_RETRIES = 3  # Ray retries of a task whose worker died
+
+
+@dataclass(frozen=True)
+class Job:
+    payload: Any
+    needs: tuple = ()  # keys into the shared objects
+
+
+def make_engine(name: str, workers: int | None = None, address: str | None = None, backend=None):
+    """The engine called `name` ("local" or "ray")."""
+    if name == "local":
+        return LocalEngine(workers, threads=bool(getattr(backend, "releases_gil", False)))
+    if name == "ray":
+        return RayEngine(workers, address)
+    raise ValueError(f"unknown engine {name!r}; choose from {', '.join(ENGINES)}")
+
+
+class LocalEngine:
+    name = "local"
+
+    def __init__(self, workers: int | None = None, threads: bool = False):
+        self.workers = max(1, int(workers or os.cpu_count() or 1))
+        self.threads = threads and self.workers > 1
+
+    def map(self, fn: Callable, jobs: list[Job], objects: dict, on_result: Callable[[Job, Any], None]) -> None:
+        if not self.threads:
+            for job in jobs:
+                on_result(job, fn(job.payload, *[objects[k] for k in job.needs]))
+            return
+        with ThreadPoolExecutor(self.workers) as pool:
+            futures = {pool.submit(fn, job.payload, *[objects[k] for k in job.needs]): job for job in jobs}
+            try:
+                for fut in as_completed(futures):
+                    on_result(futures[fut], fut.result())
+            except BaseException:
+                for fut in futures:
+                    fut.cancel()
+                raise
+
+    def close(self) -> None:
+        pass
+
+    @property
+    def parallelism(self) -> int:
+        return self.workers if self.threads else 1
+
+
+class RayEngine:
+    name = "ray"
+
+    def __init__(self, workers: int | None = None, address: str | None = None):
+        try:
+            import ray
+        except ImportError as exc:  # ray is an optional dependency
+            raise RuntimeError(f"the ray engine needs the 'ray' package ({exc}); pip install 'ray>=2.9'") from None
+        self._ray = ray
+        self._started = False
+        if not ray.is_initialized():
+            if address:
+                ray.init(address=address, log_to_driver=False, configure_logging=False)
+            else:
+                ray.init(num_cpus=int(workers or os.cpu_count() or 1), include_dashboard=False,
+                         log_to_driver=False, configure_logging=False)
+            self._started = True
+        resources = ray.cluster_resources()
+        self.gpus = int(resources.get("GPU", 0))
+        self.cpus = int(resources.get("CPU", 1))
+
+    @property
+    def parallelism(self) -> int:
+        return max(1, self.gpus if self.gpus else self.cpus)
+
+    def map(self, fn: Callable, jobs: list[Job], objects: dict, on_result: Callable[[Job, Any], None]) -> None:
+        ray = self._ray
+        if not jobs:
+            return
+        needed = sorted({k for job in jobs for k in job.needs}, key=repr)
+        refs = {k: ray.put(objects[k]) for k in needed}
+        task = ray.remote(fn).options(num_cpus=1, num_gpus=1 if self.gpus else 0, max_retries=MAX_RETRIES,
+                                      retry_exceptions=False)
+        pending = {task.remote(job.payload, *[refs[k] for k in job.needs]): job for job in jobs}
+        try:
+            while pending:
+                done, _ = ray.wait(list(pending), num_returns=1)
+                for ref in done:
+                    job = pending.pop(ref)
+                    on_result(job, ray.get(ref))
+        except BaseException:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            raise
+        finally:
+            del refs
+
+    def close(self) -> None:
+        if self._started and self._ray.is_initialized():
+            self._ray.shutdown()
+            self._started = False

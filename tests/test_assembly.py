@@ -1,0 +1,319 @@
+"""Assembly (issue 5): batched screening, the spanning forest, joint refinement, outputs,
+the part-accuracy metric, and resuming a killed CLI run from its cache."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+
+from relicgpu import synth
+from relicgpu.assembly import (Edge, _finish_groups, _inv, assemble, grow_forest, lcs_lengths_bitparallel,
+                               penetration, refine_poses, screen, select_candidates)
+from relicgpu.backends import numpy as ref
+from relicgpu.evaluate import score, score_assembly
+from relicgpu.io import load_directory
+from relicgpu.params import Params
+from relicgpu.verify import SurfaceSample, vertex_normals
+
+SMALL = dict(shape="vase", pieces=4, seed=0, faces=1200)
+CLI = [sys.executable, "-c", "import sys; from relicgpu.cli import main; sys.exit(main())"]
+
+
+# --- data -------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def broken():
+    return synth.generate(**SMALL, progress=False)
+
+
+@pytest.fixture(scope="module")
+def synth_dir(tmp_path_factory, broken):
+    out = tmp_path_factory.mktemp("synth")
+    synth.write(broken, out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def local_result(synth_dir):
+    frags = load_directory(synth_dir / "fragments")
+    return assemble(frags, backend="numpy", progress=False), frags
+
+
+def truth_samples(result, n_points=1500):
+    """Surface samples built from the synth truth (fracture faces known), so the forest
+    can be tested apart from segmentation."""
+    out = []
+    for frag, frac in zip(result.fragments, result.fracture_faces):
+        normals, areas = ref.face_normals(frag.vertices, frag.faces)
+        vn = vertex_normals(frag.vertices, np.asarray(frag.faces, np.int64), normals, areas)
+        fv = np.unique(frag.faces[frac].ravel())
+        rng = np.random.default_rng(0)
+        if len(fv) > n_points:
+            fv = np.sort(rng.choice(fv, n_points, replace=False))
+        sv = np.arange(len(frag.vertices))
+        if len(sv) > 2 * n_points:
+            sv = np.sort(rng.choice(sv, 2 * n_points, replace=False))
+        out.append(SurfaceSample(frag.vertices[fv], frag.vertices[sv], vn[sv]))
+    return out
+
+
+def true_edges(result, rng, offset=0):
+    return [Edge(i + offset, j + offset, _inv(result.poses[i]) @ result.poses[j], float(rng.uniform(0.4, 0.9)))
+            for i, j in result.touching]
+
+
+def scale_of(fragments):
+    return float(np.median([f.size for f in fragments]))
+
+
+def _rot(deg, axis, centre):
+    from scipy.spatial.transform import Rotation
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
+    m[:3, 3] = centre - m[:3, :3] @ centre
+    return m
+
+
+# --- screening ----------------------------------------------------------------------
+
+def test_bitparallel_lcs_equals_the_reference_on_ties_and_boundaries():
+    rng = np.random.default_rng(7)
+    for _ in range(25):
+        na, nb = rng.integers(1, 5), rng.integers(1, 5)
+        la, lb = rng.integers(0, 90, na), rng.integers(0, 200, nb)
+        step = rng.choice([0.125, 0.25, 0.5])  # coarse values: many ties and |a - b| == eps exactly
+        a = np.round(rng.normal(size=la.sum()) / step) * step
+        b = np.round(rng.normal(size=lb.sum()) / step) * step
+        ao, bo = np.concatenate([[0], np.cumsum(la)]), np.concatenate([[0], np.cumsum(lb)])
+        pairs = np.array([(i, j) for i in range(na) for j in range(nb)])
+        eps = float(rng.choice([0.0, 0.125, 0.25, 0.3]))
+        want = ref.lcs_lengths(a, ao, b, bo, pairs, eps)
+        got = lcs_lengths_bitparallel(a, ao, b, bo, pairs, eps, chunk=2)
+        np.testing.assert_array_equal(got, want)
+
+
+def _fake_prepared(*contour_values):
+    return SimpleNamespace(contours=[SimpleNamespace(fused=np.asarray(v, float)) for v in contour_values])
+
+
+def test_screen_scores_the_mating_contour_highest_in_any_rotation_and_direction():
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=120)
+    mate = np.roll(x[::-1], 37) + rng.normal(0, 0.02, 120)  # opposite direction, other start
+    prepared = [_fake_prepared(x), _fake_prepared(rng.normal(size=100), mate), _fake_prepared(rng.normal(size=130))]
+    result = screen(prepared, Params(), ref)
+    s = result.scores
+    assert np.allclose(s, s.T)
+    assert s[0, 1] > 0.95
+    assert s[0, 1] > s[0, 2] + 0.1 and s[0, 1] > s[1, 2] + 0.1
+    best_only = select_candidates(s, 1)
+    assert (0, 1) in best_only and len(best_only) == 2  # fragment 2's best partner joins it
+    assert select_candidates(s, 2) == [(0, 1), (0, 2), (1, 2)]
+
+
+# --- the forest and refinement, from true matches -------------------------------------
+
+def test_forest_from_true_matches_rebuilds_the_object(broken):
+    rng = np.random.default_rng(0)
+    samples = truth_samples(broken)
+    edges = true_edges(broken, rng)
+    n = len(broken.fragments)
+    pose, group, notes = grow_forest(n, edges, samples, Params(), scale_of(broken.fragments), ref)
+    assert all(v.startswith("used") for v in notes.values()), notes
+    poses, groups = _finish_groups(pose, group)
+    assert poses[0] is not None and np.allclose(poses[0], np.eye(4))  # the group's frame is its first fragment's
+    s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching,
+              [(e.a, e.b, e.transform) for e in edges])
+    assert s.part_accuracy == 1.0 and s.pair_precision == 1.0 and s.pair_recall == 1.0
+    assert s.rotation_rmse_deg < 1e-4 and s.translation_rmse < 1e-9
+
+
+def test_forest_refuses_interpenetration_and_a_disagreeing_loop(broken):
+    rng = np.random.default_rng(1)
+    samples = truth_samples(broken)
+    edges = true_edges(broken, rng)
+    n = len(broken.fragments)
+    scale = scale_of(broken.fragments)
+    # a false match, scored above all: fragment j pushed half its size into fragment i
+    i, j = broken.touching[0]
+    true_rel = _inv(broken.poses[i]) @ broken.poses[j]
+    centre_i = samples[i].fracture.mean(axis=0)
+    push = np.eye(4)
+    push[:3, 3] = centre_i - (true_rel[:3, :3] @ samples[j].surface.mean(axis=0) + true_rel[:3, 3])
+    clash = Edge(i, j, push @ true_rel, 0.99)
+    assert penetration(samples[i], samples[j], clash.transform, ref, Params().penetration_depth * scale) > 0.03
+    assert penetration(samples[i], samples[j], true_rel, ref, Params().penetration_depth * scale) <= 0.03
+    # a match that closes a loop the wrong way: a true pair, turned 20 degrees, scored lowest
+    a, b = broken.touching[-1]
+    rel = _inv(broken.poses[a]) @ broken.poses[b]
+    turned = Edge(a, b, _rot(20, (0, 0, 1), samples[a].fracture.mean(axis=0)) @ rel, 0.1)
+    others = [e for e in edges if (e.a, e.b) not in ((a, b), (i, j))]
+    pose, group, notes = grow_forest(n, others + [clash, turned], samples, Params(), scale, ref)
+    assert "interpenetrate" in notes[(i, j)] or "disagree" in notes[(i, j)]
+    assert notes[(a, b)].startswith("refused: disagrees with a closed loop")
+    poses, groups = _finish_groups(pose, group)
+    s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching,
+              [(e.a, e.b, e.transform) for e in others])
+    assert s.part_accuracy == 1.0
+
+
+def test_two_objects_end_in_two_groups(broken):
+    other = synth.generate(shape="slab", pieces=3, seed=1, faces=800, progress=False)
+    rng = np.random.default_rng(2)
+    n0 = len(broken.fragments)
+    samples = truth_samples(broken) + truth_samples(other)
+    edges = true_edges(broken, rng) + true_edges(other, rng, offset=n0)
+    frags = broken.fragments + other.fragments
+    pose, group, notes = grow_forest(len(frags), edges, samples, Params(), scale_of(frags), ref)
+    poses, groups = _finish_groups(pose, group)
+    assert groups == [0] * n0 + [1] * len(other.fragments)
+    s = score([f.vertices for f in frags], poses, groups, broken.poses + other.poses,
+              broken.touching + [(i + n0, j + n0) for i, j in other.touching],
+              [(e.a, e.b, e.transform) for e in edges], objects=[0] * n0 + [1] * len(other.fragments))
+    assert s.part_accuracy == 1.0
+
+
+def test_refinement_spreads_loop_error_and_brings_poses_closer(broken):
+    rng = np.random.default_rng(4)
+    samples = truth_samples(broken)
+    edges = []
+    for e in true_edges(broken, rng):
+        c = broken.fragments[e.b].vertices.mean(axis=0)
+        edges.append(Edge(e.a, e.b, e.transform @ _rot(1.0, rng.normal(size=3), c), e.score))
+    n = len(broken.fragments)
+    scale = scale_of(broken.fragments)
+    params = Params()
+    pose, group, notes = grow_forest(n, edges, samples, params, scale, ref)
+    used = [e for e in edges if notes[(e.a, e.b)].startswith("used")]
+    assert len(used) > n - 1  # there are loops to refine
+    before = score([f.vertices for f in broken.fragments], *_finish_groups(pose, group), broken.poses, broken.touching, [])
+    after = score([f.vertices for f in broken.fragments], *_finish_groups(refine_poses(pose, group, used, samples), group),
+                  broken.poses, broken.touching, [])
+    assert after.rotation_rmse_deg < 0.9 * before.rotation_rmse_deg
+    assert after.part_accuracy == 1.0
+
+
+def test_part_accuracy_counts_a_moved_fragment_wrong(broken):
+    verts = [f.vertices for f in broken.fragments]
+    n = len(verts)
+    s = score(verts, list(broken.poses), [0] * n, broken.poses, broken.touching, [])
+    assert s.part_accuracy == 1.0
+    moved = list(broken.poses)
+    moved[2] = np.eye(4)
+    moved[2][:3, 3] = [0.05, 0, 0]
+    moved[2] = moved[2] @ broken.poses[2]
+    s = score(verts, moved, [0] * n, broken.poses, broken.touching, [])
+    assert s.part_accuracy == (n - 1) / n and not s.right[2]
+    # the whole group moved together is still right: only relative placement counts
+    shift = np.eye(4)
+    shift[:3, 3] = [3.0, -1.0, 0.5]
+    s = score(verts, [shift @ p for p in broken.poses], [0] * n, broken.poses, broken.touching, [])
+    assert s.part_accuracy == 1.0
+    # unplaced fragments are wrong; an object split in two groups counts its main group only
+    s = score(verts, [broken.poses[0], broken.poses[1], None, None], [0, 0, 1, 2], broken.poses, broken.touching, [])
+    assert s.part_accuracy == 0.5
+
+
+# --- end to end on a synthetic object ------------------------------------------------------
+
+def test_assemble_small_synthetic_object(local_result, synth_dir):
+    result, frags = local_result
+    s = score_assembly(result, frags, synth.read_truth(synth_dir))
+    assert s.part_accuracy >= 0.95, (s, result.stats, [m.note for m in result.matches])
+    assert s.pair_precision >= 0.95
+    assert result.n_groups == 1
+    doc = result.to_dict()
+    assert set(doc) == {"version", "fragments", "matches", "backend", "engine", "timings"}
+    assert [f["file"] for f in doc["fragments"]] == [f.name for f in frags]
+
+
+def test_mixed_directory_of_two_objects_gives_two_groups(tmp_path):
+    a = synth.generate(shape="vase", pieces=5, seed=1, faces=1000, progress=False)
+    b = synth.generate(shape="torso", pieces=5, seed=2, faces=1000, progress=False)
+    synth.write_many([a, b], tmp_path)
+    frags = load_directory(tmp_path / "fragments")
+    result = assemble(frags, backend="numpy", progress=False)
+    truth = synth.read_truth(tmp_path)
+    s = score_assembly(result, frags, truth)
+    objects = {e["name"]: e["object"] for e in truth["fragments"]}
+    placed_groups = {}
+    for name, g, pose in zip(result.names, result.groups, result.poses):
+        if pose is not None:
+            placed_groups.setdefault(g, set()).add(objects[name])
+    assert all(len(o) == 1 for o in placed_groups.values())  # no group mixes objects
+    assert len(placed_groups) == 2
+    assert s.part_accuracy >= 0.95 and s.pair_precision >= 0.95
+
+
+def _run_cli(src, out, *extra, quiet=True):
+    cmd = [*CLI, "assemble", str(src), "-o", str(out), "--backend", "numpy", *extra]
+    if quiet:
+        cmd.append("--quiet")
+    return cmd
+
+
+def test_cli_writes_outputs_and_leaves_inputs_alone(tmp_path, synth_dir, local_result):
+    src = synth_dir / "fragments"
+    before = {p.name: p.read_bytes() for p in src.iterdir()}
+    out = tmp_path / "out"
+    proc = subprocess.run(_run_cli(src, out, quiet=False), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert {p.name: p.read_bytes() for p in src.iterdir()} == before
+    doc = json.loads((out / "assembly.json").read_text())
+    result, frags = local_result
+    assert _without_timings(doc) == _without_timings(result.to_dict())
+    scene = trimesh.load(out / "assembly.glb", force="scene")
+    assert sorted(scene.graph.nodes_geometry) == sorted(f.name for f in frags)
+    merged = trimesh.load(out / "merged.stl", force="mesh")
+    assert merged.is_watertight
+    broken_volume = synth.read_truth(synth_dir)["objects"][0]["volume"]
+    placed = [i for i, p in enumerate(result.poses) if p is not None and result.groups[i] == 0]
+    if len(placed) == len(frags):  # all placed right: the union is the object again
+        assert abs(merged.volume - broken_volume) < 0.03 * broken_volume
+    assert "verified" in proc.stderr
+
+
+def _without_timings(doc):
+    return {k: v for k, v in doc.items() if k != "timings"}
+
+
+def test_cli_killed_mid_run_resumes_from_its_cache(tmp_path, synth_dir, local_result):
+    src = synth_dir / "fragments"
+    out = tmp_path / "out"
+    pairs_dir = out / "cache" / "pairs"
+    proc = subprocess.Popen(_run_cli(src, out), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None:
+        if pairs_dir.exists() and any(p.suffix == ".json" for p in pairs_dir.iterdir()):
+            break
+        time.sleep(0.01)
+    assert proc.poll() is None, "the run ended before it could be killed: " + proc.stderr.read().decode()[-2000:]
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = sorted(p.name for p in pairs_dir.iterdir() if p.suffix == ".json")
+    mtimes = {p.name: p.stat().st_mtime_ns for p in pairs_dir.iterdir() if p.suffix == ".json"}
+    assert done and not (out / "assembly.json").exists()
+    result, _ = local_result
+    assert len(done) < len(result.candidates)  # killed mid-way, not at the end
+
+    again = subprocess.run(_run_cli(src, out, quiet=False), capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert f"({len(done)} from cache)" in again.stderr
+    # the finished pairs were read, not recomputed
+    assert all((pairs_dir / name).stat().st_mtime_ns == t for name, t in mtimes.items())
+    doc = json.loads((out / "assembly.json").read_text())
+    assert _without_timings(doc) == _without_timings(result.to_dict())
+
+
+def test_cli_reports_a_bad_directory_in_one_line(tmp_path):
+    proc = subprocess.run([*CLI, "assemble", str(tmp_path / "nope"), "-o",
+                           str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert "not a directory" in proc.stderr and "Traceback" not in proc.stderr

@@ -1,0 +1,118 @@
+"""Engines: local (sequential / threads) and Ray (same assembly as local; a worker killed
+mid-run is retried and nothing is lost). One local Ray session is shared by the module."""
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from relicgpu import synth
+from relicgpu.assembly import assemble
+from relicgpu.engines import Job, LocalEngine, make_engine
+from relicgpu.io import load_directory
+
+
+def _square(payload, *shared):
+    return payload * payload + sum(shared)
+
+
+def test_local_engine_hands_back_every_result_sequential_and_threaded():
+    jobs = [Job(i, (i % 2,)) for i in range(7)]
+    objects = {0: 10, 1: 100}
+    for engine in (LocalEngine(1), LocalEngine(3, threads=True)):
+        got = {}
+        engine.map(_square, jobs, objects, lambda job, r: got.__setitem__(job.payload, r))
+        assert got == {i: i * i + objects[i % 2] for i in range(7)}
+
+
+def test_unknown_engine_is_refused():
+    with pytest.raises(ValueError, match="unknown engine"):
+        make_engine("dask")
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    ray = pytest.importorskip("ray")
+    started = not ray.is_initialized()
+    if started:
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    # this test file is not importable on the workers: ship its functions by value
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    yield ray
+    if started:
+        ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def synth_fragments(tmp_path_factory):
+    out = tmp_path_factory.mktemp("synth")
+    synth.write(synth.generate(shape="slab", pieces=4, seed=3, faces=1000, progress=False), out)
+    return load_directory(out / "fragments")
+
+
+@pytest.fixture(scope="module")
+def local_doc(synth_fragments):
+    return _comparable(assemble(synth_fragments, backend="numpy", progress=False).to_dict())
+
+
+def _comparable(doc):
+    return {k: v for k, v in doc.items() if k not in ("timings", "engine")}
+
+
+def test_ray_engine_map(ray_session):
+    engine = make_engine("ray")
+    assert engine.cpus == 2
+    got = {}
+    engine.map(_square, [Job(i, (0,)) for i in range(5)], {0: 1}, lambda job, r: got.__setitem__(job.payload, r))
+    engine.close()  # does not shut down a session it did not start
+    assert ray_session.is_initialized()
+    assert got == {i: i * i + 1 for i in range(5)}
+
+
+def test_ray_assembly_equals_local(ray_session, synth_fragments, local_doc):
+    result = assemble(synth_fragments, backend="numpy", engine="ray", progress=False)
+    assert result.engine == "ray"
+    assert _comparable(result.to_dict()) == local_doc
+
+
+def _ray_task_pids(name: str) -> list[int]:
+    """Processes whose title is ray::<name> (a Ray worker running that task)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            cmd = (entry / "cmdline").read_bytes().split(b"\0")[0].decode(errors="replace")
+        except OSError:
+            continue
+        if cmd.startswith(f"ray::{name}"):
+            pids.append(int(entry.name))
+    return pids
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="finds Ray workers through /proc")
+def test_ray_worker_killed_mid_run_is_retried_and_nothing_is_lost(ray_session, synth_fragments, local_doc):
+    killed = []
+    stop = threading.Event()
+
+    def killer():
+        while not stop.is_set():
+            pids = _ray_task_pids("_match_job")
+            if pids:
+                os.kill(pids[0], signal.SIGKILL)
+                killed.append(pids[0])
+                return
+            time.sleep(0.005)
+
+    watcher = threading.Thread(target=killer, daemon=True)
+    watcher.start()
+    try:
+        result = assemble(synth_fragments, backend="numpy", engine="ray", progress=False)
+    finally:
+        stop.set()
+        watcher.join(5)
+    assert killed, "no Ray worker was seen running a match task"
+    assert _comparable(result.to_dict()) == local_doc
