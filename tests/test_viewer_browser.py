@@ -81,26 +81,39 @@ def served(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def page(served):
+def browser():
+    pytest.importorskip("playwright")
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
         # launch() gives every run a fresh temporary user-data dir.
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        pg = browser.new_page(viewport={"width": 1280, "height": 800})
-        pg.set_default_timeout(TIMEOUT_MS)
-        problems: list[str] = []
-        pg.on("console", lambda m: problems.append(f"console.{m.type}: {m.text}") if m.type == "error" else None)
-        pg.on("pageerror", lambda e: problems.append(f"page error: {e}"))
-        # The page closes its event stream on the final state, which may abort the tail of that
-        # response: expected. Any other failed request is a problem.
-        pg.on("requestfailed", lambda r: None if ("/api/progress" in r.url and "ERR_ABORTED" in (r.failure or ""))
-              else problems.append(f"request failed: {r.url} {r.failure}"))
-        pg.problems = problems
-        pg.goto(served[0])
-        pg.wait_for_selector('body[data-state="ready"]')
-        yield pg
-        browser.close()
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+def new_page(browser):
+    """A page that records console errors, page errors and failed requests in .problems."""
+    pg = browser.new_page(viewport={"width": 1280, "height": 800})
+    pg.set_default_timeout(TIMEOUT_MS)
+    problems: list[str] = []
+    pg.on("console", lambda m: problems.append(f"console.{m.type}: {m.text}") if m.type == "error" else None)
+    pg.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+    # The page closes its event stream on the final state, which may abort the tail of that
+    # response: expected. Any other failed request is a problem.
+    pg.on("requestfailed", lambda r: None if ("/api/progress" in r.url and "ERR_ABORTED" in (r.failure or ""))
+          else problems.append(f"request failed: {r.url} {r.failure}"))
+    pg.problems = problems
+    return pg
+
+
+@pytest.fixture(scope="module")
+def page(served, browser):
+    pg = new_page(browser)
+    pg.goto(served[0])
+    pg.wait_for_selector('body[data-state="ready"]')
+    yield pg
+    pg.close()
 
 
 def shot(page, name: str):
@@ -255,3 +268,39 @@ def test_assemble_from_the_page_streams_progress(page):
     assert not page.is_disabled("#toggle-btn")
     assert page.locator("#match-list li").count() == 1
     assert page.problems == []
+
+
+def test_demo_case_end_to_end(browser, tmp_path, monkeypatch):
+    """`relicgpu demo`'s case (relicgpu.synth + relicgpu.assemble, the real pipeline) in the browser."""
+    import importlib.util
+
+    if importlib.util.find_spec("relicgpu.synth") is None or importlib.util.find_spec("relicgpu.assembly") is None:
+        pytest.skip("relicgpu.synth and relicgpu.assembly are not installed yet")
+    from relicgpu.demo import make_case
+    from relicgpu.viewer.app import create_app, serve_in_thread
+
+    monkeypatch.setenv("RELICGPU_BACKEND", "numpy")  # no kernel compilation in a quick test
+    case = make_case(tmp_path, shape="vase", pieces=3, seed=1, log=lambda msg: None)
+    doc = json.loads((case / "assembly" / "assembly.json").read_text())
+    placed = sum(f["pose"] is not None for f in doc["fragments"])
+    server, url = serve_in_thread(create_app(tmp_path))
+    try:
+        pg = new_page(browser)
+        pg.set_default_timeout(60_000)
+        pg.goto(f"{url}#case={case.name}")
+        pg.wait_for_selector('body[data-state="ready"]')
+        assert pg.locator("#fragment-list li").count() == len(doc["fragments"]) == 3
+        pg.wait_for_selector('body[data-contours="ready"]')
+        first = shot(pg, "demo")
+        fg, shares = colour_shares(first, 3)
+        # (scattered pieces, when nothing is placed, are small in a view that holds them all)
+        assert fg > 0.004 and sum(s > 0.0005 for s in shares) >= 2, (fg, shares)
+        if placed >= 2:
+            pg.click("#toggle-btn")
+            pg.wait_for_selector('body[data-anim="idle"]')
+            changed = (np.abs(shot(pg, "demo-scattered").astype(int) - first.astype(int)).max(axis=2) > 24).mean()
+            assert changed > 0.01
+        assert pg.problems == []
+        pg.close()
+    finally:
+        server.close()
