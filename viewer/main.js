@@ -207,6 +207,7 @@ function markContourCount(name, data) {
 }
 
 function focusFragment(name) {
+  if (view.pair && name !== view.pair.a && name !== view.pair.b) leavePairView();
   for (const li of ui.fragmentList.children) li.classList.toggle('active', li.dataset.name === name);
   const rec = view.fragments.get(name);
   if (!rec) return;
@@ -262,14 +263,16 @@ function showPair(a, b, transform) {
   ui.showAllBtn.hidden = false;
 }
 
-ui.showAllBtn.addEventListener('click', () => {
+function leavePairView() {
   view.clearPair();
   view.clearMarkers();
   state.picks = [];
   for (const x of ui.matchList.children) x.classList.remove('active');
   ui.showAllBtn.hidden = true;
   view.fit();
-});
+}
+
+ui.showAllBtn.addEventListener('click', leavePairView);
 
 function describeMatch(m) {
   const box = document.createElement('div');
@@ -287,8 +290,10 @@ function describeMatch(m) {
 
 // --- view controls -----------------------------------------------------------------
 
-function autoFitFrame() {
+function followFrame() {
+  // The camera follows the fragments as they move, keeping the user's viewing direction.
   ui.blend.value = String(Math.round(view.blend * 1000));
+  view.fit();
 }
 
 ui.toggleBtn.addEventListener('click', () => {
@@ -299,7 +304,7 @@ ui.toggleBtn.addEventListener('click', () => {
     view.fit();
     document.body.dataset.anim = 'idle';
   };
-  view.animateBlend(state.assembledShown ? 1 : 0, 900, autoFitFrame);
+  view.animateBlend(state.assembledShown ? 1 : 0, 900, followFrame);
 });
 
 ui.blend.addEventListener('input', () => {
@@ -359,8 +364,10 @@ async function runHandMatch(pa, pb) {
   setStatus(ui.pickStatus, `matching ${pa.name} and ${pb.name} from heads [${heads.join(', ')}]…`);
   ui.matchResult.textContent = '';
   document.body.dataset.match = 'running';
+  const caseId = state.caseId;
   try {
-    const m = await api.postMatch(state.caseId, pa.name, pb.name, heads);
+    const m = await api.postMatch(caseId, pa.name, pb.name, heads);
+    if (caseId !== state.caseId) return; // the user moved on to another case
     ui.matchResult.classList.remove('error');
     ui.matchResult.append(describeMatch(m));
     setStatus(ui.pickStatus, `matched from heads [${heads.join(', ')}]`);
