@@ -597,15 +597,16 @@ def make_server(app: Flask, host: str = "127.0.0.1", port: int = 8000, threads: 
     """A waitress server bound to host:port (port 0: any free port), not yet running."""
     from waitress.server import create_server
 
+    server = create_server(app, host=host, port=port, threads=threads,
+                           ident="relicgpu-viewer", clear_untrusted_proxy_headers=True)
     if not is_loopback(host):
         app.extensions["relicgpu.hosts"]["trusted"] = None  # users reach it by names we cannot know
         bar = "!" * 78
-        print(f"{bar}\nWARNING: relicgpu viewer listening on {host}:{port}, reachable from other machines.\n"
+        print(f"{bar}\nWARNING: relicgpu viewer listening on {host}:{server.effective_port}, reachable from other machines.\n"
               "Anyone who can reach it can read every mesh of this workspace and start assemblies;\n"
               f"there is no authentication. Use --host 127.0.0.1 unless you mean this.\n{bar}",
               file=sys.stderr, flush=True)
-    return create_server(app, host=host, port=port, threads=threads,
-                         ident="relicgpu-viewer", clear_untrusted_proxy_headers=True)
+    return server
 
 
 def server_url(server, host: str) -> str:
