@@ -3,11 +3,17 @@
 `generate(shape, pieces, seed, ...)` builds a closed solid (a vase, a torso, a
 slab, or any watertight mesh file), normalised to unit size (bounding-box
 diagonal 1, centred on the origin), and breaks it into `pieces` single-body
-fragments along rough fractal cut surfaces with manifold3d booleans. Every
-piece is then remeshed on its own (refine, then quadric decimation with
-fast_simplification), so two neighbours never share vertex positions, as with
-real scans; scanner noise is added along the vertex normals and the pieces are
-scattered to random poses.
+fragments along rough fractal cut surfaces with manifold3d booleans.
+
+Every piece is meshed on its own, as a scan would be: the two sides of each cut
+are triangulated by two different grids (random rotation and offset) of the
+same rough surface, so neighbours sample their common fracture at different
+points and share no vertex positions (a last check slides any vertex that still
+coincides with a neighbour's along an edge). The whole object is sampled at one
+density, chosen so that the pieces have `faces` faces on average; the slivers
+the booleans leave where a cut clips a triangle are collapsed or flipped away.
+Scanner noise is added along the vertex normals and the pieces are scattered
+to random poses.
 
 The truth kept with each fragment: the 4x4 pose that carries its file
 coordinates back into the object frame, which pieces touch (and over what
@@ -85,7 +91,7 @@ class SynthResult:
 
 def generate(shape: str = "vase", pieces: int = 2, seed: int = 0, faces: int = 4000, noise: float = 0.0,
              roughness: float = 0.02, scatter: bool = True, progress: bool | None = None) -> SynthResult:
-    """Break `shape` into `pieces` fragments of about `faces` faces each.
+    """Break `shape` into `pieces` fragments of about `faces` faces each on average.
 
     shape: "vase", "torso", "slab", or the path of a closed (watertight) mesh file.
     noise: standard deviation of the scanner noise along the normals (object diagonal = 1).
@@ -505,7 +511,8 @@ def _fracture(obj, pieces, roughness, spacing, rng, bar):
     with one cutter and differenced with another, two grids of the same surface at
     random rotations and offsets. So neighbours sample their common fracture at
     different points, as two scans would, and match up to the linear
-    interpolation error of the grids (under 1e-3 of the object size).
+    interpolation error of the grids (measured: RMS under 4e-4, at most about
+    1.2e-3 of the object size at 4000 faces, half that at 20000).
     Returns the pieces, the original id of the object's faces and the octave count.
     """
     object_id = obj.original_id()
@@ -807,11 +814,6 @@ def _drop_unused(v, f):
         return v, f
     remap = np.cumsum(used) - 1
     return v[used], remap[f]
-
-
-def _n_edges(f):
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    return len(np.unique(e[:, 0] * (int(f.max()) + 1) + e[:, 1]))
 
 
 def _closed_mesh_fault(v, f, want_euler, volume):
