@@ -85,10 +85,13 @@ __kernel void lcs_lengths(__global const float2 *thr,    /* (lo, hi) per a value
         const ulong vmask = valid >= 64 ? ~(ulong)0 : (((ulong)1 << valid) - 1);
         ulong v = ~(ulong)0;
         uint cin_word = 0, cout_word = 0;
+        float2 t_next = m > 0 ? thr[a0] : (float2)(0.0f);
         for (int i = 0; i < m; ++i) {
             const uint bit = i & 31;
             if (blk > 0 && bit == 0) cin_word = carry[(size_t)(i >> 5) * n_pairs + p];
-            const float2 t = thr[a0 + i];
+            /* the next row's interval is loaded a row ahead: its latency hides behind 64 compares */
+            const float2 t = t_next;
+            if (i + 1 < m) t_next = thr[a0 + i + 1];
             const ulong mm = ROW_MASK(t.x, t.y) & vmask;
             const ulong cin = (cin_word >> bit) & 1;
             const ulong s = v + (v & mm) + cin;

@@ -1,6 +1,10 @@
 /* Family 1: face normals and the angle across every shared edge (OpenCL).
    Vertices arrive as float32 shifted to their bounding-box centre (done on the
-   host in float64). Points are packed xyz triples (vload3/vstore3). */
+   host in float64). Points are packed xyz triples (vload3/vstore3).
+   No contraction into fused multiply-adds: with FMA, a x a is not exactly zero,
+   and a face with two equal vertices must get a zero normal. */
+
+#pragma OPENCL FP_CONTRACT OFF
 
 __kernel void face_normals(__global const float *vertices, __global const int *faces, const int n_faces,
                            __global float *normals, __global float *areas)
@@ -9,7 +13,8 @@ __kernel void face_normals(__global const float *vertices, __global const int *f
     if (f >= n_faces) return;
     const int3 tri = vload3(f, faces);
     const float3 p0 = vload3(tri.x, vertices);
-    const float3 c = cross(vload3(tri.y, vertices) - p0, vload3(tri.z, vertices) - p0);
+    const float3 a = vload3(tri.y, vertices) - p0, b = vload3(tri.z, vertices) - p0;
+    const float3 c = (float3)(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x);
     const float len = length(c);
     vstore3(len > 0.0f ? c / len : (float3)(0.0f), f, normals);
     areas[f] = 0.5f * len;

@@ -103,11 +103,17 @@ def lcs_lengths_kernel(
         v_hi = ones
         cin_word = wp.uint32(0)
         cout_word = wp.uint32(0)
+        t_next = wp.vec2()
+        if m > 0:
+            t_next = thr[a0]
         for i in range(m):
             bit = wp.uint32(i % 32)
             if blk > 0 and bit == wp.uint32(0):
                 cin_word = carry[(i // 32) * n_pairs + p]
-            t = thr[a0 + i]
+            # the next row's interval is loaded a row ahead: its latency hides behind 64 compares
+            t = t_next
+            if i + 1 < m:
+                t_next = thr[a0 + i + 1]
             lo = t[0]
             hi = t[1]
             m_lo = row_mask(bb, 0, lo, hi) & mask_lo

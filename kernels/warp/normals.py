@@ -2,10 +2,13 @@
 
 Vertices arrive as float32 shifted to their bounding-box centre (the host does
 the shift in float64), so edge vectors keep their precision far from the origin.
+No fused multiply-add: with FMA, a x a is not exactly zero (one product is
+rounded, the other not), and a face with two equal vertices must get a zero
+normal, as in the float64 reference.
 """
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 
 @wp.kernel

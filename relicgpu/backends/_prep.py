@@ -51,17 +51,20 @@ def _search_keys(pred, a: np.ndarray) -> np.ndarray:
 def _boundary(pred, a: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """First float32 b where the up-set predicate pred(a, b) holds: (values, found).
 
-    The float64 guess rounded to float32 is almost always the boundary or the next
-    float32 up; the rest (huge or tiny values, NaN, odd eps) are found by binary
-    search over all float32 keys; `found` is False where no float32 b qualifies."""
+    The float64 guess rounded to float32 is almost always the boundary or one
+    float32 beside it, so two evaluations settle most values: at the guess g, and
+    at the neighbour on the side the answer must lie (below g if pred(g) holds,
+    above otherwise). The rest (huge or tiny values, NaN, odd eps) are found by
+    binary search over all float32 keys; `found` is False where no b qualifies."""
     g = guess.astype(np.float32)
-    down = np.nextafter(g, np.float32(-np.inf))
-    up = np.nextafter(g, np.float32(np.inf))
-    p_down, p_g, p_up = (pred(a, c.astype(np.float64)) for c in (down, g, up))
-    at_g = p_g & ~p_down & (down < g)
-    at_up = p_up & ~p_g & (g < up)
-    value = np.where(at_g, g, up)
-    found = at_g | at_up
+    p_g = pred(a, g.astype(np.float64))
+    side = np.where(p_g, np.float32(-np.inf), np.float32(np.inf))
+    nb = np.nextafter(g, side)
+    p_nb = pred(a, nb.astype(np.float64))
+    at_g = p_g & ~p_nb & (nb < g)  # g holds, the float32 below does not
+    at_nb = ~p_g & p_nb & (nb > g)  # g fails, the float32 above holds
+    value = np.where(at_nb, nb, g)
+    found = at_g | at_nb
     rest = np.nonzero(~found)[0]
     if len(rest):
         keys = _search_keys(pred, a[rest])
