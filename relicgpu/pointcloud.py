@@ -61,6 +61,10 @@ FILL_THICKNESS = 0.5
 # uncovered (noise, curvature); deeper ones are taken to belong to another sheet.
 PEEL_DEPTH = 1.0
 PEEL_ROUNDS = 30
+FILL_ROUNDS = 0
+# Copies of a point where the surface touches itself move this fraction of the way
+# to the centre of their own ring of neighbours.
+SPLIT_NUDGE = 0.1
 REPAIR_ROUNDS = 3
 
 
@@ -649,7 +653,7 @@ def _fans(faces: np.ndarray, first: np.ndarray, second: np.ndarray):
     wedges at a vertex are joined across every paired edge. Returns (labels, count)."""
     w1a, w2a, w1b, w2b = _links(faces, first, second)
     n_fans, fan = _components(np.concatenate([w1a, w1b]), np.concatenate([w2a, w2b]), 3 * len(faces))
-    return fan, n_fans
+    return fan.astype(np.int64), n_fans
 
 
 def _repair_double_edges(faces: np.ndarray, first: np.ndarray, second: np.ndarray, max_rounds: int = 6):
@@ -860,6 +864,11 @@ def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: fl
     if not scale > 0:
         raise FragmentError(f"{label}: all points coincide")
     q = (pts - centre) / scale
+    # Points in a plane (or on a line) bound no solid; the jitter below would hide that from Qhull.
+    sample = q[:: max(1, len(q) // 20000)]
+    thinnest = np.linalg.svd(sample - sample.mean(0), compute_uv=False)[-1] / np.sqrt(len(sample))
+    if thinnest < 1e-7:
+        raise FragmentError(f"{label}: the points span no volume (they lie in a plane or on a line)")
     t0 = time.perf_counter()
     spacing = _median_spacing(q)
     if not spacing > 0:
@@ -915,12 +924,10 @@ def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: fl
     timings["peel"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     surface = _surface(tets, inside)
-    inside, surface, filled = _fill_pinches(tets, inside, surface, spacing, alpha)
-    if filled:
-        notes.append(f"{label}: filled {filled} flat tetrahedra at non-manifold edges and vertices")
-    if len(surface.bad_edges) or len(surface.bad_vertices):
-        notes.append(f"{label}: split {len(surface.bad_edges)} non-manifold edges and "
-                     f"{len(surface.bad_vertices)} vertices into separate sheets")
+    if FILL_ROUNDS:
+        inside, surface, filled = _fill_pinches(tets, inside, surface, spacing, alpha, FILL_ROUNDS)
+        if filled:
+            notes.append(f"{label}: filled {filled} flat tetrahedra at non-manifold edges and vertices")
     faces, source = surface.faces, surface.source
     comp_sizes = np.bincount(surface.component)
     if len(comp_sizes) > 1:
@@ -932,15 +939,32 @@ def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: fl
         notes.append(f"{label}: some edges are still shared by more than two faces")
     if surface.inconsistent:
         notes.append(f"{label}: {surface.inconsistent} edges are wound inconsistently")
-    timings["repair"] = time.perf_counter() - t0
-    bar.update()
 
     used = np.unique(faces)
     remap = np.full(len(source), -1, np.int64)
     remap[used] = np.arange(len(used))
-    vertices = pts[source[used]]
-    faces = remap[faces].astype(np.int32)
-    coverage = len(np.unique(source[used])) / len(q)
+    source = source[used]
+    faces = remap[faces]
+    vertices = pts[source]
+    # Where the surface touches itself (a point split into several copies, one per sheet),
+    # move each copy a little into its own sheet so that no two vertices coincide.
+    copies = np.bincount(source, minlength=len(pts))
+    split = copies[source] > 1
+    if split.any():
+        ring = np.zeros_like(vertices)
+        corner_v = faces.ravel()
+        nbr_sum = vertices[np.roll(faces, -1, axis=1)].reshape(-1, 3) + vertices[np.roll(faces, 1, axis=1)].reshape(-1, 3)
+        for axis in range(3):
+            ring[:, axis] = np.bincount(corner_v, nbr_sum[:, axis], minlength=len(vertices))
+        count = 2.0 * np.bincount(corner_v, minlength=len(vertices))
+        centre_of_ring = ring / np.maximum(count, 1)[:, None]
+        vertices = vertices.copy()
+        vertices[split] += SPLIT_NUDGE * (centre_of_ring[split] - vertices[split])
+        notes.append(f"{label}: the surface touched itself at {int((copies > 1).sum())} points; "
+                     f"their copies were moved {SPLIT_NUDGE:.0%} of the way into their own sheets")
+    faces = faces.astype(np.int32)
+    coverage = len(np.unique(source)) / len(q)
+    timings["repair"] = time.perf_counter() - t0
     bar.update()
     bar.close()
     return MeshResult(vertices, faces, len(points), len(pts), voxel, spacing * scale, alpha * scale,
@@ -980,13 +1004,13 @@ def cli_main(args) -> int:
 
     src = Path(args.cloud)
     out = Path(args.output) if args.output else src.with_name(src.stem + "_mesh.ply")
-    if out.suffix.lower() not in MESH_SUFFIXES:
-        raise CliError(f"{out}: unknown mesh format {out.suffix or '(no extension)'!r}; use .ply, .stl, .obj, .off or .glb")
     if args.alpha_factor <= 0:
         raise CliError(f"--alpha-factor must be positive, got {args.alpha_factor}")
     if args.max_points < 0:
         raise CliError(f"--max-points must be 0 or more, got {args.max_points}")
     ensure_not_input(out, [src])
+    if out.suffix.lower() not in MESH_SUFFIXES:
+        raise CliError(f"{out}: unknown mesh format {out.suffix or '(no extension)'!r}; use .ply, .stl, .obj, .off or .glb")
     t0 = time.perf_counter()
     cloud = read_point_cloud(src)
     result = triangulate(cloud.points, max_points=args.max_points or None, alpha_factor=args.alpha_factor,
