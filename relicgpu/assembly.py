@@ -47,6 +47,9 @@ LOOP_TOLERANCE = 0.02
 REFINE_ROUNDS = 10
 # Interpenetration is judged only within this many penetration depths of the other surface.
 PENETRATION_BAND = 3.0
+# Two closed fragments clash when their intersection holds more than this share of the
+# smaller one's volume (correctly placed synthetic neighbours: at most 0.002).
+MAX_OVERLAP_VOLUME = 0.01
 
 # --- the result --------------------------------------------------------------
 
@@ -465,14 +468,15 @@ class Edge:
     score: float
 
 
-def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale: float, backend
-                ) -> tuple[list, list[int], dict[tuple[int, int], str]]:
+def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale: float, backend,
+                solids: list | None = None) -> tuple[list, list[int], dict[tuple[int, int], str]]:
     """Spanning forest of verified matches, best first.
 
     Each group keeps poses in its own frame. An edge between two groups merges them
     when (1) the verified edges between the two groups that agree with its placement
     outweigh those that do not (by score) and (2) no fragment of one group then
-    interpenetrates a fragment of the other (`penetration` on the surface samples).
+    interpenetrates a fragment of the other: by the volume of their intersection where both
+    are closed solids (`solids`, manifold3d), else by `penetration` of the surface samples.
     An edge inside a group is used when it agrees with the placement the group already
     has (a closed loop), refused otherwise.
     Returns poses (4x4 or None), group label per fragment, and a note per edge.
@@ -509,10 +513,11 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
         if disagree > agree:
             notes[(e.a, e.b)] = "refused: other matches between the two groups disagree"
             continue
-        clash = _first_clash(members[ga], members[gb], pose, move, samples, params, scale, backend)
+        clash = _first_clash(members[ga], members[gb], pose, move, samples, params, scale, backend,
+                             solids or [None] * n)
         if clash is not None:
-            p, q, pen = clash
-            notes[(e.a, e.b)] = f"refused: fragments {p} and {q} would interpenetrate ({pen:.3f})"
+            p, q, what = clash
+            notes[(e.a, e.b)] = f"refused: fragments {p} and {q} would interpenetrate ({what})"
             continue
         for q in members[gb]:
             pose[q] = move @ pose[q]
@@ -522,8 +527,9 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
     return pose, group, notes
 
 
-def _first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Params, scale: float, backend):
-    """The first pair (p in ga, q in gb) whose placed surfaces interpenetrate after gb moves by `move`."""
+def _first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Params, scale: float, backend,
+                 solids: list):
+    """The first pair (p in ga, q in gb) that interpenetrates after gb moves by `move`, with a note."""
     depth = params.penetration_depth * scale
     boxes_a = {p: _bbox(_apply(pose[p], samples[p].surface)) for p in ga}
     for q in gb:
@@ -533,10 +539,35 @@ def _first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Para
             box_p = boxes_a[p]
             if np.any(box_q[0] > box_p[1] + depth) or np.any(box_p[0] > box_q[1] + depth):
                 continue
-            pen = penetration(samples[p], samples[q], _inv(pose[p]) @ tq, backend, depth)
+            rel = _inv(pose[p]) @ tq
+            if solids[p] is not None and solids[q] is not None:
+                shared = overlap_volume(solids[p], solids[q], rel)
+                if shared > MAX_OVERLAP_VOLUME:
+                    return p, q, f"{100 * shared:.1f}% of the smaller volume shared"
+                continue
+            pen = penetration(samples[p], samples[q], rel, backend, depth)
             if pen > params.max_penetration:
-                return p, q, pen
+                return p, q, f"{100 * pen:.1f}% of surface points inside"
     return None
+
+
+def closed_solid(fragment: Fragment):
+    """The fragment as a manifold3d solid, or None when it is not a closed 2-manifold (an open scan)."""
+    import manifold3d as m3d
+
+    mesh = m3d.Mesh(vert_properties=np.asarray(fragment.vertices, np.float32),
+                    tri_verts=np.asarray(fragment.faces, np.uint32))
+    mesh.merge()
+    solid = m3d.Manifold(mesh)
+    if solid.status() != m3d.Error.NoError or solid.is_empty() or solid.volume() <= 0:
+        return None
+    return solid
+
+
+def overlap_volume(a, b, transform: np.ndarray) -> float:
+    """Volume shared by solid a and solid b moved by `transform`, over the smaller volume."""
+    shared = (a ^ b.transform(np.asarray(transform, np.float64)[:3, :])).volume()
+    return float(shared / min(a.volume(), b.volume()))
 
 
 def penetration(a, b, transform: np.ndarray, backend, depth: float) -> float:
@@ -632,12 +663,13 @@ def _bar(total: int, show: bool, desc: str):
 
 def assemble(fragments_or_dir, params: Params | None = None, backend="auto", engine="local", workers=None,
              cache_dir=None, progress=True, out_dir=None, address: str | None = None,
-             top_k: int = TOP_K) -> "Assembly":
+             top_k: int = TOP_K, gpus_per_task: float | None = None) -> "Assembly":
     """Match and assemble a directory (or list) of fragments.
 
     Returns an Assembly; with out_dir, also writes assembly.json, assembly.glb and the
     merged STL(s) there, and caches finished work in out_dir/cache (or cache_dir).
-    engine: "local" or "ray" (address: a Ray cluster to join, else a local one starts).
+    engine: "local" or "ray" (address: a Ray cluster to join, else a local one starts;
+    gpus_per_task: GPUs a Ray task takes where there are GPUs, default 1).
     """
     from .backends import resolve
     from .engines import Job, make_engine
@@ -658,7 +690,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     show = bool(progress) and sys.stderr.isatty()
     stats: dict = {"fragments": n, "scale": scale}
 
-    eng = make_engine(engine, workers, address, be)
+    eng = make_engine(engine, workers, address, be, gpus_per_task)
     try:
         # 1. prepare every fragment at the common scale
         t0 = time.perf_counter()
@@ -729,7 +761,9 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     edges = [Edge(i, j, np.asarray(d["transform"], np.float64), float(d["score"]))
              for (i, j), d in sorted(docs.items()) if d["accepted"]]
     samples = [p.sample for p in prepared]
-    pose, group, notes = grow_forest(n, edges, samples, params, scale, be)
+    joined = sorted({k for e in edges for k in (e.a, e.b)})
+    solids = [closed_solid(fragments[i]) if i in joined else None for i in range(n)]
+    pose, group, notes = grow_forest(n, edges, samples, params, scale, be, solids)
     used = [e for e in edges if notes[(e.a, e.b)].startswith("used")]
     timings["assemble"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -789,17 +823,37 @@ def _colour(i: int) -> tuple[int, int, int, int]:
     return int(r * 255), int(g * 255), int(b * 255), 255
 
 
+def group_layout(assembly: Assembly, fragments: list[Fragment], gap: float = 0.1) -> dict[int, np.ndarray]:
+    """A translation per group that sets the groups (an unplaced fragment is a group of its own)
+    side by side along +x, in group order, `gap` times the largest group size apart."""
+    boxes = {}
+    for g, members in sorted(assembly.group_members().items()):
+        pts = np.concatenate([_apply(np.eye(4) if assembly.poses[i] is None else np.asarray(assembly.poses[i]),
+                                     fragments[i].vertices) for i in members])
+        boxes[g] = _bbox(pts)
+    spacing = gap * max(float(np.linalg.norm(b[1] - b[0])) for b in boxes.values())
+    out, x = {}, 0.0
+    for g, box in boxes.items():
+        shift = np.eye(4)
+        shift[:3, 3] = [x - box[0, 0], -0.5 * (box[0, 1] + box[1, 1]), -0.5 * (box[0, 2] + box[1, 2])]
+        out[g] = shift
+        x += float(box[1, 0] - box[0, 0]) + spacing
+    return out
+
+
 def assembly_glb(assembly: Assembly, fragments: list[Fragment]) -> bytes:
-    """A glTF scene: one named node per fragment, placed (unplaced ones where they are), own colour."""
+    """A glTF scene: one named node per fragment, own colour, its transform the fragment's pose
+    followed by its group's translation from `group_layout` (groups side by side)."""
     import trimesh
 
+    layout = group_layout(assembly, fragments)
     scene = trimesh.Scene()
     for i, frag in enumerate(fragments):
         mesh = trimesh.Trimesh(frag.vertices, frag.faces, process=False)
         mesh.visual.face_colors = np.tile(_colour(i), (len(frag.faces), 1))
-        pose = assembly.poses[i]
+        pose = np.eye(4) if assembly.poses[i] is None else np.asarray(assembly.poses[i])
         scene.add_geometry(mesh, node_name=frag.name, geom_name=frag.name,
-                           transform=np.eye(4) if pose is None else np.asarray(pose))
+                           transform=layout[assembly.groups[i]] @ pose)
     return scene.export(file_type="glb")
 
 
@@ -812,14 +866,11 @@ def merged_solid(fragments: list[Fragment], poses: list[np.ndarray]) -> tuple[np
 
     solids, notes = [], []
     for frag, pose in zip(fragments, poses):
-        v = _apply(np.asarray(pose), frag.vertices).astype(np.float32)
-        mesh = m3d.Mesh(vert_properties=v, tri_verts=np.asarray(frag.faces, np.uint32))
-        mesh.merge()
-        solid = m3d.Manifold(mesh)
-        if solid.status() != m3d.Error.NoError or solid.is_empty():
-            notes.append(f"{frag.name}: not a closed manifold mesh ({solid.status().name}); left out of the merged solid")
+        solid = closed_solid(frag)
+        if solid is None:
+            notes.append(f"{frag.name}: not a closed manifold mesh; left out of the merged solid")
             continue
-        solids.append(solid)
+        solids.append(solid.transform(np.asarray(pose, np.float64)[:3, :]))
     if not solids:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), notes
     union = m3d.Manifold.batch_boolean(solids, m3d.OpType.Add)
@@ -866,6 +917,8 @@ def cli_add_arguments(parser) -> None:
     parser.add_argument("--engine", default="local", choices=["local", "ray"], help="where pairs are matched")
     parser.add_argument("--address", default=None, help="Ray cluster to join (e.g. ray://head:10001 or auto)")
     parser.add_argument("--workers", type=int, default=None, help="parallel workers (threads or local Ray CPUs)")
+    parser.add_argument("--gpus-per-task", type=float, default=None,
+                        help="GPUs per Ray task where there are GPUs (default 1; e.g. 0.125 lets 8 tasks share one)")
     parser.add_argument("--cache-dir", default=None, help="cache directory (default OUT/cache)")
     parser.add_argument("--top-k", type=int, default=TOP_K, help=f"partners per fragment matched in full (default {TOP_K})")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary on stderr")
@@ -890,11 +943,11 @@ def cli_main(args) -> int:
     try:
         result = assemble(src, backend=args.backend, engine=args.engine, workers=args.workers,
                           cache_dir=args.cache_dir, progress=not args.quiet, out_dir=args.out,
-                          address=args.address, top_k=args.top_k)
+                          address=args.address, top_k=args.top_k, gpus_per_task=args.gpus_per_task)
     except BackendError as exc:
         raise CliError(str(exc)) from None
-    except RuntimeError as exc:
-        if "ray" in str(exc).lower():
+    except (RuntimeError, ValueError) as exc:
+        if "ray" in str(exc).lower() or "gpus_per_task" in str(exc):
             raise CliError(str(exc)) from None
         raise
     s = result.stats

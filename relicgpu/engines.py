@@ -10,7 +10,8 @@ of the shared objects it needs; the function is called as
   (its `releases_gil` attribute), else one job after the other.
 * `ray`: each job is a Ray task. `address` joins a running cluster, otherwise a
   local Ray starts with `workers` CPUs (or the machine's). Shared objects go
-  into the object store once; a task takes one GPU where the cluster has GPUs;
+  into the object store once; a task takes one GPU where the cluster has GPUs
+  (or `gpus_per_task`, a fraction, so that several tasks share a GPU);
   a task lost with its worker or node is retried by Ray (`max_retries`).
   Scheduling, retries and data movement are all Ray's.
 """
@@ -31,12 +32,13 @@ class Job:
     needs: tuple = ()  # keys into the shared objects
 
 
-def make_engine(name: str, workers: int | None = None, address: str | None = None, backend=None):
+def make_engine(name: str, workers: int | None = None, address: str | None = None, backend=None,
+                gpus_per_task: float | None = None):
     """The engine called `name` ("local" or "ray")."""
     if name == "local":
         return LocalEngine(workers, threads=bool(getattr(backend, "releases_gil", False)))
     if name == "ray":
-        return RayEngine(workers, address)
+        return RayEngine(workers, address, gpus_per_task)
     raise ValueError(f"unknown engine {name!r}; choose from {', '.join(ENGINES)}")
 
 
@@ -73,11 +75,13 @@ class LocalEngine:
 class RayEngine:
     name = "ray"
 
-    def __init__(self, workers: int | None = None, address: str | None = None):
+    def __init__(self, workers: int | None = None, address: str | None = None, gpus_per_task: float | None = None):
         try:
             import ray
         except ImportError as exc:  # ray is an optional dependency
             raise RuntimeError(f"the ray engine needs the 'ray' package ({exc}); pip install 'ray>=2.9'") from None
+        if gpus_per_task is not None and not 0.0 <= float(gpus_per_task):
+            raise ValueError(f"gpus_per_task must not be negative, got {gpus_per_task}")
         self._ray = ray
         self._started = False
         if not ray.is_initialized():
@@ -90,10 +94,18 @@ class RayEngine:
         resources = ray.cluster_resources()
         self.gpus = int(resources.get("GPU", 0))
         self.cpus = int(resources.get("CPU", 1))
+        # One GPU per task where the cluster has GPUs; a fraction lets several tasks share one
+        # (the pair work is mostly host code around short kernels).
+        self.gpus_per_task = (1.0 if gpus_per_task is None else float(gpus_per_task)) if self.gpus else 0.0
+        if self.gpus_per_task > 1 and self.gpus_per_task != int(self.gpus_per_task) or self.gpus_per_task > self.gpus:
+            self.close()  # a task asking for more than a node can give would wait forever
+            raise ValueError(f"gpus_per_task must be a fraction or a whole number up to {self.gpus}, got {gpus_per_task}")
 
     @property
     def parallelism(self) -> int:
-        return max(1, self.gpus if self.gpus else self.cpus)
+        if self.gpus_per_task > 0:
+            return max(1, min(self.cpus, int(self.gpus / self.gpus_per_task)))
+        return max(1, self.cpus)
 
     def map(self, fn: Callable, jobs: list[Job], objects: dict, on_result: Callable[[Job, Any], None]) -> None:
         ray = self._ray
@@ -101,7 +113,7 @@ class RayEngine:
             return
         needed = sorted({k for job in jobs for k in job.needs}, key=repr)
         refs = {k: ray.put(objects[k]) for k in needed}
-        task = ray.remote(fn).options(num_cpus=1, num_gpus=1 if self.gpus else 0, max_retries=MAX_RETRIES,
+        task = ray.remote(fn).options(num_cpus=1, num_gpus=self.gpus_per_task, max_retries=MAX_RETRIES,
                                       retry_exceptions=False)
         pending = {task.remote(job.payload, *[refs[k] for k in job.needs]): job for job in jobs}
         try:

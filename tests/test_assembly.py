@@ -14,8 +14,9 @@ import pytest
 import trimesh
 
 from relicgpu import synth
-from relicgpu.assembly import (Edge, _finish_groups, _inv, assemble, grow_forest, lcs_lengths_bitparallel,
-                               penetration, refine_poses, screen, select_candidates)
+from relicgpu.assembly import (Edge, _finish_groups, _inv, assemble, closed_solid, grow_forest,
+                               lcs_lengths_bitparallel, overlap_volume, penetration, refine_poses, screen,
+                               select_candidates)
 from relicgpu.backends import numpy as ref
 from relicgpu.evaluate import score, score_assembly
 from relicgpu.io import load_directory
@@ -135,29 +136,41 @@ def test_forest_from_true_matches_rebuilds_the_object(broken):
     assert s.rotation_rmse_deg < 1e-4 and s.translation_rmse < 1e-9
 
 
+def test_true_neighbours_do_not_count_as_interpenetrating(broken):
+    samples = truth_samples(broken)
+    solids = [closed_solid(f) for f in broken.fragments]
+    assert all(s is not None for s in solids)
+    depth = Params().penetration_depth * scale_of(broken.fragments)
+    n = len(broken.fragments)
+    for i in range(n):
+        for j in range(i + 1, n):
+            rel = _inv(broken.poses[i]) @ broken.poses[j]
+            assert penetration(samples[i], samples[j], rel, ref, depth) <= Params().max_penetration
+            assert overlap_volume(solids[i], solids[j], rel) < 0.005
+
+
 def test_forest_refuses_interpenetration_and_a_disagreeing_loop(broken):
     rng = np.random.default_rng(1)
     samples = truth_samples(broken)
+    solids = [closed_solid(f) for f in broken.fragments]
     edges = true_edges(broken, rng)
     n = len(broken.fragments)
     scale = scale_of(broken.fragments)
-    # a false match, scored above all: fragment j pushed half its size into fragment i
+    # a false match, scored above all: fragment j pushed into fragment i
     i, j = broken.touching[0]
     true_rel = _inv(broken.poses[i]) @ broken.poses[j]
-    centre_i = samples[i].fracture.mean(axis=0)
     push = np.eye(4)
-    push[:3, 3] = centre_i - (true_rel[:3, :3] @ samples[j].surface.mean(axis=0) + true_rel[:3, 3])
+    push[:3, 3] = samples[i].surface.mean(axis=0) - (true_rel[:3, :3] @ samples[j].surface.mean(axis=0) + true_rel[:3, 3])
     clash = Edge(i, j, push @ true_rel, 0.99)
-    assert penetration(samples[i], samples[j], clash.transform, ref, Params().penetration_depth * scale) > 0.03
-    assert penetration(samples[i], samples[j], true_rel, ref, Params().penetration_depth * scale) <= 0.03
+    assert overlap_volume(solids[i], solids[j], clash.transform) > 0.05
     # a match that closes a loop the wrong way: a true pair, turned 20 degrees, scored lowest
     a, b = broken.touching[-1]
     rel = _inv(broken.poses[a]) @ broken.poses[b]
     turned = Edge(a, b, _rot(20, (0, 0, 1), samples[a].fracture.mean(axis=0)) @ rel, 0.1)
     others = [e for e in edges if (e.a, e.b) not in ((a, b), (i, j))]
-    pose, group, notes = grow_forest(n, others + [clash, turned], samples, Params(), scale, ref)
-    assert "interpenetrate" in notes[(i, j)] or "disagree" in notes[(i, j)]
-    assert notes[(a, b)].startswith("refused: disagrees with a closed loop")
+    pose, group, notes = grow_forest(n, others + [clash, turned], samples, Params(), scale, ref, solids)
+    assert "interpenetrate" in notes[(i, j)], notes
+    assert notes[(a, b)].startswith("refused: disagrees with a closed loop"), notes
     poses, groups = _finish_groups(pose, group)
     s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching,
               [(e.a, e.b, e.transform) for e in others])
