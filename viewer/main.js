@@ -9,7 +9,7 @@ const ui = {
   contoursCheck: $('contours-check'), fractureCheck: $('fracture-check'), caseStatus: $('case-status'),
   fragmentList: $('fragment-list'), fragmentCount: $('fragment-count'), matchList: $('match-list'), matchCount: $('match-count'),
   pickBtn: $('pick-btn'), showAllBtn: $('show-all-btn'), pickStatus: $('pick-status'), matchResult: $('match-result'),
-  overlay: $('overlay'), host: $('canvas-host'),
+  overlay: $('overlay'), host: $('canvas-host'), downloads: $('downloads'),
 };
 
 const view = new FragmentScene(ui.host);
@@ -141,6 +141,15 @@ async function loadCase(caseId) {
   lines.push(...(info.notes || []), ...failures);
   setStatus(ui.caseStatus, lines.join('\n'), Boolean(info.assembly_error || failures.length));
   ui.overlay.textContent = info.fragments.length ? '' : 'this case has no fragment files';
+  ui.downloads.innerHTML = '';
+  for (const file of info.files || []) {
+    const a = document.createElement('a');
+    a.href = `/api/cases/${encodeURIComponent(caseId)}/files/${encodeURIComponent(file)}`;
+    a.textContent = file;
+    a.title = file === 'merged.stl' ? 'the assembled solid, ready for a 3-D printer' : `download ${file}`;
+    if (ui.downloads.childNodes.length) ui.downloads.append(' · ');
+    ui.downloads.append(a);
+  }
   document.body.dataset.state = 'ready';
 
   loadMatches(caseId, stale);
