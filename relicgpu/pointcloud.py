@@ -5,26 +5,32 @@ Paper sections 3.5 (scanners deliver point clouds, .asc and .pcd) and 3.7.1
 Bowyer-Watson; here the Delaunay step is Qhull's (scipy.spatial.Delaunay) in
 3-D, and the surface is carved out of the tetrahedralisation:
 
-1. Thin the cloud on a voxel grid when it has more than `max_points` points
-   (the mean of the points in each voxel), so that Qhull stays fast.
-2. Delaunay-tetrahedralise the points.
-3. Flood the tetrahedra from the outside (the convex hull) through every face
-   whose circumradius exceeds alpha. A surface sampled at spacing h is sealed
-   by Delaunay triangles of circumradius about h, so the flood stops at the
-   scanned surface; every tetrahedron it does not reach is inside. alpha is a
-   multiple of the median nearest-neighbour distance; when the flood leaks
-   through a gap in the scan (few points end up on the surface) alpha grows
-   and the flood is repeated.
-4. Keep the largest face-connected inside body and repair non-manifold edges
-   and vertices by filling the small outside tetrahedra around them (or
-   carving the inside ones when the outside ones are large).
-5. The boundary triangles of the kept tetrahedra form the mesh; each is wound
-   so that its normal points away from its inside tetrahedron (outwards).
+1. Thin the cloud on a voxel grid (the mean of the points of each voxel) when it
+   has more than `max_points` points, so that Qhull stays fast.
+2. Delaunay-tetrahedralise the points (scaled into [-1, 1], jittered by 1e-9).
+3. Flood the tetrahedra from outside the convex hull through every face whose
+   circumradius exceeds alpha. A surface sampled at spacing h is sealed by
+   Delaunay triangles of circumradius about h, so the flood stops at the scanned
+   surface; what it does not reach is inside. alpha starts at ALPHA_FACTOR times
+   the median nearest-neighbour distance and grows until the flood stops leaking
+   through gaps in the scan: the inside holds (nearly) every point and its volume
+   no longer grows with alpha.
+4. Keep the largest face-connected inside body; a majority vote over face
+   neighbours removes lone slivers that would pinch the surface.
+5. Peel: a tetrahedron under a boundary face whose fourth point lies just below
+   that face is moved outside, so the surface passes through points the large
+   alpha had spanned over (sculpting, which keeps the surface a manifold).
+6. The boundary triangles, wound away from their inside tetrahedron (outwards),
+   form the mesh. Where the surface still touches itself (an edge with four
+   faces, a vertex with two fans) it is split into separate sheets, small sheets
+   pinched off are dropped, and the copies of a split point are moved 10% into
+   their own sheets, so that the result is one closed manifold with no two
+   vertices at one place.
 
-The result is one closed, manifold body whose vertices are the (thinned)
-scan points. Its limits: features smaller than about alpha (a few point
-spacings) are bridged, walls thinner than about two spacings need a denser
-scan, and a scan with holes wider than alpha is closed over them.
+Limits: features smaller than alpha (a few point spacings) are bridged, walls
+need a few spacings of thickness, a scan with holes wider than alpha is closed
+over them (with a note), and the scan must cover the whole fragment: a one-sided
+scan is not a solid.
 """
 from __future__ import annotations
 
@@ -53,19 +59,15 @@ ALPHA_TRIES = 12
 # one whose volume grows by more than 10% at the next alpha has not settled.
 MIN_COVERAGE = 0.98
 STABLE_VOLUME = 0.9
-# Outside tetrahedra at a non-manifold edge or vertex are filled when they are
-# flat (thinner than FILL_THICKNESS spacings) and local (no edge over 2 alpha);
-# the pinches left are split into separate sheets.
-FILL_THICKNESS = 0.5
 # Points buried under the sealed surface by at most PEEL_DEPTH spacings are
 # uncovered (noise, curvature); deeper ones are taken to belong to another sheet.
 PEEL_DEPTH = 1.0
 PEEL_ROUNDS = 30
-FILL_ROUNDS = 0
+# Rounds of the majority vote that removes lone slivers from the inside/outside labels.
+SMOOTH_ROUNDS = 3
 # Copies of a point where the surface touches itself move this fraction of the way
 # to the centre of their own ring of neighbours.
 SPLIT_NUDGE = 0.1
-REPAIR_ROUNDS = 3
 
 
 @dataclass(frozen=True)
@@ -799,34 +801,20 @@ def _peel(tets: _Tets, inside: np.ndarray, depth: float, max_rounds: int = PEEL_
     return inside, peeled
 
 
-def _fill_pinches(tets: _Tets, inside: np.ndarray, surface: _Surface, spacing: float, alpha: float,
-                  max_rounds: int = REPAIR_ROUNDS):
-    """Fill the flat outside tetrahedra at non-manifold edges and vertices (only ever adding).
-
-    The pinches come from slivers: four nearly coplanar surface points whose flat
-    tetrahedron fell outside while its neighbours fell inside. Filling a sliver moves
-    the surface by less than its thickness.
-    """
-    filled = 0
-    for _ in range(max_rounds):
-        if len(surface.bad_edges) == 0 and len(surface.bad_vertices) == 0:
+def _smooth_labels(tets: _Tets, inside: np.ndarray, alpha: float, rounds: int = SMOOTH_ROUNDS) -> np.ndarray:
+    """A majority vote over face neighbours: fill local outside tetrahedra with three or four
+    inside neighbours, carve inside ones with at most one. The flood leaves such lone slivers
+    along the surface, and each pinches it (two sheets meeting at a vertex or an edge)."""
+    nb = tets.neighbors
+    local = tets.longest <= 2.0 * alpha
+    for _ in range(rounds):
+        n_inside = np.where(nb >= 0, inside[np.maximum(nb, 0)], False).sum(axis=1)
+        add = ~inside & (n_inside >= 3) & local
+        cut = inside & (n_inside <= 1)
+        if not add.any() and not cut.any():
             break
-        mark = np.zeros(tets.n_points, bool)
-        mark[surface.bad_vertices] = True
-        touched = mark[tets.simplices].any(axis=1)
-        if len(surface.bad_edges):
-            ends = np.zeros(tets.n_points, bool)
-            ends[surface.bad_edges // tets.n_points] = True
-            ends[surface.bad_edges % tets.n_points] = True
-            maybe = np.nonzero(ends[tets.simplices].sum(axis=1) >= 2)[0]
-            touched[maybe[np.isin(tets.edge_keys[maybe], surface.bad_edges).any(axis=1)]] = True
-        add = touched & ~inside & (tets.thickness <= FILL_THICKNESS * spacing) & (tets.longest <= 2.0 * alpha)
-        if not add.any():
-            break
-        inside = inside | add
-        filled += int(add.sum())
-        surface = _surface(tets, inside)
-    return inside, surface, filled
+        inside = (inside | add) & ~cut
+    return inside
 
 
 def _median_spacing(q: np.ndarray) -> float:
@@ -920,14 +908,11 @@ def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: fl
         notes.append(f"{label}: kept the largest of {n_bodies} separate bodies")
 
     t0 = time.perf_counter()
+    inside, _, _ = _largest_body(tets, _smooth_labels(tets, inside, alpha))
     inside, peeled = _peel(tets, inside, PEEL_DEPTH * spacing)
     timings["peel"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     surface = _surface(tets, inside)
-    if FILL_ROUNDS:
-        inside, surface, filled = _fill_pinches(tets, inside, surface, spacing, alpha, FILL_ROUNDS)
-        if filled:
-            notes.append(f"{label}: filled {filled} flat tetrahedra at non-manifold edges and vertices")
     faces, source = surface.faces, surface.source
     comp_sizes = np.bincount(surface.component)
     if len(comp_sizes) > 1:
@@ -971,6 +956,32 @@ def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: fl
                       coverage, timings, tuple(notes))
 
 
+def closed_manifold_fault(vertices: np.ndarray, faces: np.ndarray) -> str | None:
+    """None when the mesh is one closed, consistently wound, outward body with no degenerate
+    faces and no two vertices at one place; else what is wrong."""
+    from .io import count_bodies
+
+    v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    if len(f) < 4:
+        return "fewer than 4 faces"
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    if (np.einsum("ij,ij->i", cross, cross) == 0).any():
+        return "degenerate faces"
+    d = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    key = np.sort(d[:, 0] * len(v) + d[:, 1])
+    if (np.diff(key) == 0).any():
+        return "an edge used twice in one direction (non-manifold or flipped)"
+    if not np.isin(d[:, 1] * len(v) + d[:, 0], key).all():
+        return "open edges"
+    if len(np.unique(v, axis=0)) != len(v):
+        return "two vertices at one place (the surface touches itself)"
+    if count_bodies(v, f) != 1:
+        return "more than one body"
+    if np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() <= 0:
+        return "wound inwards"
+    return None
+
+
 def load_point_cloud_fragment(path, name: str | None = None, *, max_points: int | None = MAX_POINTS,
                               alpha_factor: float = ALPHA_FACTOR, progress: bool = False) -> Fragment:
     """Read a point-cloud file and triangulate it into a checked Fragment (called by relicgpu.io.load_fragment)."""
@@ -995,6 +1006,9 @@ def cli_add_arguments(parser) -> None:
                         help=f"thin larger clouds on a voxel grid to about this many points (0: never; default {MAX_POINTS})")
     parser.add_argument("--alpha-factor", type=float, default=ALPHA_FACTOR,
                         help=f"alpha as a multiple of the median point spacing (default {ALPHA_FACTOR})")
+    parser.add_argument("--faces", type=int, default=0,
+                        help="aim at about this many faces by thinning the cloud to half as many points first "
+                             "(default: as many as --max-points gives)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -1008,17 +1022,24 @@ def cli_main(args) -> int:
         raise CliError(f"--alpha-factor must be positive, got {args.alpha_factor}")
     if args.max_points < 0:
         raise CliError(f"--max-points must be 0 or more, got {args.max_points}")
+    if args.faces < 0:
+        raise CliError(f"--faces must be 0 or more, got {args.faces}")
     ensure_not_input(out, [src])
     if out.suffix.lower() not in MESH_SUFFIXES:
         raise CliError(f"{out}: unknown mesh format {out.suffix or '(no extension)'!r}; use .ply, .stl, .obj, .off or .glb")
     t0 = time.perf_counter()
     cloud = read_point_cloud(src)
-    result = triangulate(cloud.points, max_points=args.max_points or None, alpha_factor=args.alpha_factor,
+    # A closed surface has about twice as many faces as vertices.
+    max_points = args.max_points or None
+    if args.faces:
+        max_points = min(max_points or args.faces // 2, max(args.faces // 2, MIN_POINTS))
+    result = triangulate(cloud.points, max_points=max_points, alpha_factor=args.alpha_factor,
                          progress=not args.quiet, label=str(src))
-    write_mesh(out, result.vertices, result.faces)
-    for note in cloud.notes + result.notes:
-        print(f"note: {note}", file=sys.stderr)
-    print(f"{out}: {len(result.vertices)} vertices, {len(result.faces)} faces from {result.n_input} points "
+    vertices, faces = result.vertices, result.faces
+    write_mesh(out, vertices, faces)
+    for n in cloud.notes + result.notes:
+        print(f"note: {n}", file=sys.stderr)
+    print(f"{out}: {len(vertices)} vertices, {len(faces)} faces from {result.n_input} points "
           f"(spacing {result.spacing:.4g}, alpha {result.alpha:.4g}, {result.coverage:.0%} of points on the surface) "
           f"in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -394,10 +394,14 @@ def _make_remeshed_pair(shape, seed, n_points):
     return result, remeshed
 
 
+# Points per fragment: the thin-walled vase needs more than the slab to keep its fracture edges within 1%.
+SYNTH_POINTS = {"vase": 40000, "slab": 20000}
+
+
 @needs_synth
-@pytest.mark.parametrize("shape", ["vase", "slab"])
+@pytest.mark.parametrize("shape", sorted(SYNTH_POINTS))
 def test_synth_fragments_sampled_and_meshed_again_stay_within_one_percent(shape):
-    result, remeshed = _remeshed_pair(shape, 0, 40000)
+    result, remeshed = _remeshed_pair(shape, 0, SYNTH_POINTS[shape])
     for frag, again in zip(result.fragments, remeshed):
         assert_closed_outward_one_body(again.vertices, again.faces)
         assert hausdorff(again.to_trimesh(), frag.to_trimesh()) < 0.01 * frag.size, frag.name
@@ -412,7 +416,7 @@ def _angle_deg(r):
 def test_synth_fragments_meshed_again_match_at_the_true_pose():
     from relicgpu.pipeline import match_pair
 
-    result, (a, b) = _remeshed_pair("slab", 0, 40000)
+    result, (a, b) = _remeshed_pair("slab", 0, SYNTH_POINTS["slab"])
     truth = np.linalg.inv(result.poses[0]) @ result.poses[1]  # carries b onto a
     m = match_pair(a, b, backend="numpy")
     assert m.accepted, m.reason
