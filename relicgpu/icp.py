@@ -129,3 +129,71 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, backend, itera
             break
         prev = d_mean
     return IcpResult(pose, d_mean, it)
+
+
+def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The smallest rotation carrying unit vector u onto unit vector v."""
+    c = float(np.dot(u, v))
+    axis = np.cross(u, v)
+    s = np.linalg.norm(axis)
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        # opposite: half a turn about any axis normal to u
+        other = np.array([1.0, 0, 0]) if abs(u[0]) < 0.9 else np.array([0, 1.0, 0])
+        axis = np.cross(u, other)
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]]) / s
+    return np.eye(3) + s * k + (1 - c) * k @ k
+
+
+def axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def facing_poses(centre_a, normal_a, centre_b, normal_b, steps: int) -> np.ndarray:
+    """Poses putting patch b face to face with patch a (centres together, normals opposite),
+    at `steps` turns about the common normal: (steps,4,4)."""
+    base = rotation_between(np.asarray(normal_b), -np.asarray(normal_a))
+    out = np.tile(np.eye(4), (steps, 1, 1))
+    for k in range(steps):
+        r = axis_rotation(np.asarray(normal_a), 2 * np.pi * k / steps) @ base
+        out[k, :3, :3] = r
+        out[k, :3, 3] = centre_a - r @ centre_b
+    return out
+
+
+def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backend, iterations: int,
+                reject: float, floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """A few rounds of ICP for many starting poses at once: every round is ONE nearest-neighbour
+    launch over all hypotheses' points. Returns the poses and each one's share of source points
+    ending within `floor` of the target."""
+    poses = np.array(poses, np.float64)
+    h, n = len(poses), len(source)
+    share = np.zeros(h)
+    for _ in range(iterations):
+        moved = np.einsum("hij,nj->hni", poses[:, :3, :3], source) + poses[:, None, :3, 3]
+        idx, dist = backend.nearest_neighbors(moved.reshape(-1, 3), target)
+        idx = np.asarray(idx, np.int64).reshape(h, n)
+        dist = np.asarray(dist, np.float64).reshape(h, n)
+        cutoff = np.maximum(floor, np.minimum(reject, 3.0 * np.median(dist, axis=1)))
+        w = (dist < cutoff[:, None]).astype(np.float64)
+        share = (dist < floor).mean(axis=1)
+        wsum = np.maximum(w.sum(axis=1), 1e-12)
+        matched = target[idx]
+        cs = np.einsum("hn,hni->hi", w, moved) / wsum[:, None]
+        ct = np.einsum("hn,hni->hi", w, matched) / wsum[:, None]
+        hmat = np.einsum("hn,hni,hnj->hij", w, moved - cs[:, None], matched - ct[:, None])
+        u, _, vt = np.linalg.svd(hmat)
+        v = np.swapaxes(vt, 1, 2)
+        d = np.sign(np.linalg.det(v @ np.swapaxes(u, 1, 2)))
+        d[d == 0] = 1.0
+        r = v @ (np.eye(3)[None] * np.stack([np.ones(h), np.ones(h), d], 1)[:, None, :]) @ np.swapaxes(u, 1, 2)
+        step = np.tile(np.eye(4), (h, 1, 1))
+        step[:, :3, :3] = r
+        step[:, :3, 3] = ct - np.einsum("hij,hj->hi", r, cs)
+        ok = w.sum(axis=1) >= 3
+        poses[ok] = step[ok] @ poses[ok]
+    return poses, share

@@ -16,10 +16,14 @@ class Params:
     unit: float | None = None
 
     # segmentation (Alg. 2)
-    roughness_radius: float = 0.03   # neighbourhood for the normal perturbation of a face
-    roughness_threshold_deg: float = 9.0  # median normal perturbation above this: fracture surface
+    roughness_rings: int = 3         # neighbourhood (edge steps) for the normal perturbation of a face
+    roughness_threshold_deg: float = 3.0  # faces rougher than this (and than the noise floor) are fracture
+    roughness_noise_factor: float = 1.8   # ... times the roughness of the smoothest part of the surface
+    smooth_quantile: float = 0.2          # the smoothest part: this share of the area
     crease_angle_deg: float = 50.0   # region growing stops at edges whose normals differ more
-    min_region_faces: int = 40       # smaller regions are merged into their neighbour
+    vote_rings: int = 2              # fracture/original by a vote of the faces this many edge-steps around
+    min_region_faces: int = 12       # smaller regions are merged into their neighbour ...
+    min_region_share: float = 0.01   # ... as are regions with less than this share of the faces
 
     # contours
     contour_step: float = 0.008      # resampling step along contours
@@ -38,17 +42,22 @@ class Params:
     ransac_iterations: int = 400
     ransac_inlier: float = 0.02      # correspondence inlier distance for the LCS pose
     hypotheses: int = 6              # coarse poses handed to ICP per pair
+    max_patches: int = 3             # fracture patches per fragment tried face to face ...
+    min_patch_share: float = 0.15    # ... if at least this share of the largest patch's area
+    patch_turns: int = 16            # turns about the common normal tried per patch pair
+    screen_points: int = 400         # points per start in the short batched ICP that ranks starts
+    screen_iterations: int = 10
 
     # ICP (Eq. 34-35, Alg. 5)
     icp_points: int = 2500           # fracture points sampled per fragment
-    icp_iterations: int = 40
-    icp_tolerance: float = 2e-4      # stop when the mean distance d changes less than this
+    icp_iterations: int = 60
+    icp_tolerance: float = 1e-5      # stop when the mean distance d changes less than this
     icp_reject: float = 0.03         # nearest pairs farther than this are not used in the fit
 
     # verification
-    contact_distance: float = 0.006  # a point within this of the other fracture surface is in contact
-    min_overlap: float = 0.25        # share of the smaller fracture surface in contact
-    max_rmse: float = 0.004          # RMS distance over the contact
+    contact_distance: float = 0.01   # a point within this of the other fracture surface is in contact
+    min_overlap: float = 0.2         # share of the smaller fracture surface in contact
+    max_rmse: float = 0.004          # RMS point-to-plane distance over the contact
     max_penetration: float = 0.03    # share of surface points deeper than penetration_depth inside the other
     penetration_depth: float = 0.015
 

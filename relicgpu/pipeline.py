@@ -14,7 +14,7 @@ from . import contour as contour_mod
 from . import features as features_mod
 from . import fusion as fusion_mod
 from .backends import resolve
-from .icp import icp, ransac_poses
+from .icp import batched_icp, facing_poses, icp, ransac_poses
 from .io import Fragment
 from .params import Params
 from .segment import segment
@@ -38,6 +38,7 @@ class Prepared:
     region_is_fracture: np.ndarray  # (R,)
     contours: list[Contour]
     sample: SurfaceSample
+    patches: list = field(default_factory=list)  # fracture patches, largest first
     timings: dict = field(default_factory=dict)
 
     @property
@@ -99,22 +100,56 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     timings["contours+features"] = t2 - t1
 
     sample = _surface_sample(fragment, seg, params.icp_points)
+    patches = fracture_patches(fragment, seg)
     timings["sample"] = time.perf_counter() - t2
-    return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, timings)
+    return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, patches, timings)
 
 
 def _surface_sample(fragment: Fragment, seg, n_points: int) -> SurfaceSample:
     """Deterministic subsample of fracture-face vertices and of all vertices (with normals)."""
     v, f = fragment.vertices, fragment.faces
     normals = vertex_normals(v, f, seg.normals, seg.areas)
-    frac_vertices = np.unique(f[seg.fracture_faces].ravel())
+    frac_faces = np.flatnonzero(seg.fracture_faces)
+    vertex_region = np.full(len(v), -1)
+    vertex_region[f[frac_faces].ravel()] = np.repeat(seg.face_region[frac_faces], 3)
+    frac_vertices = np.flatnonzero(vertex_region >= 0)
     rng = np.random.default_rng(len(v))
     if len(frac_vertices) > n_points:
         frac_vertices = np.sort(rng.choice(frac_vertices, n_points, replace=False))
     surf = np.arange(len(v))
     if len(surf) > 2 * n_points:
         surf = np.sort(rng.choice(surf, 2 * n_points, replace=False))
-    return SurfaceSample(v[frac_vertices], v[surf], normals[surf])
+    return SurfaceSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf], normals[surf])
+
+
+@dataclass(frozen=True)
+class Patch:
+    """A fracture patch: its area-weighted centre and mean outward normal."""
+    region: int
+    centre: np.ndarray
+    normal: np.ndarray
+    area: float
+
+
+def fracture_patches(fragment: Fragment, seg) -> list[Patch]:
+    centres = fragment.vertices[fragment.faces].mean(axis=1)
+    out = []
+    for r in np.flatnonzero(seg.region_is_fracture):
+        m = seg.face_region == r
+        w = seg.areas[m]
+        n = (seg.normals[m] * w[:, None]).sum(0)
+        if w.sum() <= 0 or np.linalg.norm(n) == 0:
+            continue
+        out.append(Patch(int(r), (centres[m] * w[:, None]).sum(0) / w.sum(), n / np.linalg.norm(n), float(w.sum())))
+    return sorted(out, key=lambda p: -p.area)
+
+
+def _main_patches(patches, params: Params):
+    """The largest fracture patches of a fragment (those of a real share of its fracture area)."""
+    if not patches:
+        return []
+    biggest = patches[0].area
+    return [p for p in patches[: params.max_patches] if p.area >= params.min_patch_share * biggest]
 
 
 def _as_prepared(x, params, backend, scale) -> Prepared:
@@ -162,7 +197,9 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
 
     rng = np.random.default_rng(12345)
     inlier = params.ransac_inlier * scale
-    candidates = []  # (inliers, pose, ca, cb, pairs)
+    # Coarse poses, two sources: the paper's LCS over fused contour values (RANSAC over its
+    # correspondences), and fracture patches put face to face at a sweep of turns.
+    starts, origins = [], []  # (4,4) poses; (source, contour_a, contour_b, lcs pairs)
     for ca, cb, ha, hb in contour_pairs:
         A, B = pa.contours[ca], pb.contours[cb]
         for m in circular_lcs(A.fused, B.fused, params.lcs_eps, be, ha, hb):
@@ -170,9 +207,22 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
                 continue
             src, dst = B.points[m.pairs[:, 1]], A.points[m.pairs[:, 0]]
             for pose, count in ransac_poses(src, dst, params.ransac_iterations, inlier, rng, keep=2):
-                candidates.append((count, pose, ca, cb, m.pairs))
-    candidates.sort(key=lambda c: -c[0])
-    candidates = candidates[: params.hypotheses]
+                starts.append(pose)
+                origins.append(("lcs", ca, cb, m.pairs))
+    if heads is None:
+        for P in _main_patches(pa.patches, params):
+            for Q in _main_patches(pb.patches, params):
+                for pose in facing_poses(P.centre, P.normal, Q.centre, Q.normal, params.patch_turns):
+                    starts.append(pose)
+                    origins.append(("patch", -1, -1, np.zeros((0, 2), np.int64)))
+    candidates = []
+    if starts:
+        # rank every start by a short batched ICP on a small sample, keep the best few
+        sub_b = pb.sample.fracture[:: max(1, len(pb.sample.fracture) // params.screen_points)]
+        poses, share = batched_icp(sub_b, pa.sample.fracture, np.array(starts), be, params.screen_iterations,
+                                   params.icp_reject * scale, params.contact_distance * scale)
+        order = np.argsort(-share, kind="stable")[: params.hypotheses]
+        candidates = [(share[k], poses[k], *origins[k][1:]) for k in order]
     timings["coarse"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()

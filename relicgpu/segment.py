@@ -1,24 +1,26 @@
 """Segmentation of a fragment into fracture and original surface regions (Alg. 2, section 3.7.2).
 
 The paper grows regions across edges whose face normals differ less than a
-threshold, merges tiny regions into their neighbours and calls a region a
-fracture surface when its normal perturbation is large. On real scans a rough
-fracture surface is itself full of sharp little edges, so growing first would
-shatter it; here the order is: (1) the normal perturbation of every face (the
-angle between its normal and the mean normal of its neighbourhood) says
-fracture or original, smoothed by a majority vote of neighbours; (2) regions are
-grown over edges between faces of the same class whose normal angle is below
-the crease angle (the normal-angle kernel); (3) tiny regions are merged into the
-neighbour they share most edges with, and take its class.
+threshold, merges tiny regions into their neighbours and calls a region fracture
+when its normal perturbation is large. Where a cut meets the original surface at
+a shallow angle there is no crease to stop the growth, so here the normal
+perturbation comes first: (1) per face, the angle between its normal and the
+mean normal of its one-ring, averaged over a few rings (the surface's roughness
+at the scale of its triangles), says fracture above a threshold; (2) regions grow
+over edges between faces of the same class whose normal angle (the kernel) is
+below the crease angle; (3) tiny regions merge into the neighbour they share most
+edges with; a region's class is the area-weighted majority of its faces. A rough
+fracture surface can break into several regions at its own sharp edges, so
+neighbouring fracture regions are joined into one fracture patch, whose boundary
+loops are the contours.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, identity
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from .params import Params
 
@@ -63,19 +65,43 @@ class Segmentation:
         return self.region_is_fracture[self.face_region]
 
 
-def face_roughness(vertices, faces, normals, areas, radius: float, k: int = 24) -> np.ndarray:
-    """Normal perturbation per face: the angle (degrees) between its normal and the
-    area-weighted mean normal of the k nearest faces within `radius`."""
-    centres = vertices[faces].mean(axis=1)
-    k = int(min(k, len(faces)))
-    dist, idx = cKDTree(centres).query(centres, k=k)
-    idx = idx.reshape(len(faces), k)
-    w = areas[idx] * (dist.reshape(len(faces), k) <= radius)
-    mean = np.einsum("fk,fkd->fd", w, normals[idx])
+def ring_average(values: np.ndarray, weights: np.ndarray, edge_faces: np.ndarray, rings: int) -> np.ndarray:
+    """Weighted mean of per-face values over the faces within `rings` edge-steps.
+
+    The neighbourhood follows the surface, not space: across a thin wall the faces
+    of the other side are near in space but belong to another surface.
+    """
+    n = len(weights)
+    a, b = edge_faces[:, 0], edge_faces[:, 1]
+    reach = coo_matrix((np.ones(2 * len(a)), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(n, n)).tocsr()
+    reach = reach + identity(n, format="csr")
+    num = values * (weights[:, None] if values.ndim == 2 else weights)
+    den = weights.copy()
+    for _ in range(rings):
+        num, den = reach @ num, reach @ den
+    den = np.where(den > 0, den, 1)
+    return num / (den[:, None] if values.ndim == 2 else den)
+
+
+def face_roughness(normals: np.ndarray, areas: np.ndarray, edge_faces: np.ndarray, rings: int) -> np.ndarray:
+    """Normal perturbation per face (degrees): the angle between a face's normal and the mean
+    normal of its one-ring, averaged over the faces within `rings` edge-steps."""
+    mean = ring_average(normals, areas, edge_faces, 1)
     length = np.linalg.norm(mean, axis=1)
     mean = mean / np.where(length > 0, length, 1)[:, None]
-    cos = np.clip(np.einsum("fd,fd->f", mean, normals), -1, 1)
-    return np.degrees(np.arccos(cos))
+    angle = np.degrees(np.arccos(np.clip(np.einsum("fd,fd->f", mean, normals), -1, 1)))
+    return ring_average(angle, areas, edge_faces, rings)
+
+
+def roughness_threshold(rough: np.ndarray, areas: np.ndarray, params: Params) -> float:
+    """Fracture above this roughness: a multiple of the roughness of the smoothest fifth of the
+    surface (what scanner noise alone gives on this fragment), never below the fixed floor."""
+    order = np.argsort(rough)
+    cum = np.cumsum(areas[order])
+    if len(rough) == 0 or cum[-1] <= 0:
+        return params.roughness_threshold_deg
+    noise_floor = float(rough[order][np.searchsorted(cum, params.smooth_quantile * cum[-1])])
+    return max(params.roughness_threshold_deg, params.roughness_noise_factor * noise_floor)
 
 
 def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: float, backend) -> Segmentation:
@@ -87,31 +113,27 @@ def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: floa
     areas = np.asarray(areas, np.float64)
     angle = np.degrees(np.asarray(backend.edge_angles(normals, topo.edge_faces), np.float64))
 
-    rough = face_roughness(v, f, normals, areas, params.roughness_radius * scale)
-    is_fracture = rough > params.roughness_threshold_deg
-    is_fracture = _majority_smooth(is_fracture, topo.edge_faces, len(f), rounds=3)
-
+    smooth_edges = topo.edge_faces[angle < params.crease_angle_deg]
+    rough = face_roughness(normals, areas, smooth_edges, params.roughness_rings)
+    is_fracture = rough > roughness_threshold(rough, areas, params)
+    # a vote of the faces around: single rough faces on a smooth surface (and the reverse) flip
+    is_fracture = ring_average(is_fracture.astype(np.float64), areas, smooth_edges, params.vote_rings) > 0.5
     e0, e1 = topo.edge_faces[:, 0], topo.edge_faces[:, 1]
     joins = (is_fracture[e0] == is_fracture[e1]) & (angle < params.crease_angle_deg)
     region = _components(len(f), topo.edge_faces[joins])
-    region = _merge_small(region, topo.edge_faces, params.min_region_faces)
+    region = _merge_small(region, topo.edge_faces, max(params.min_region_faces, int(params.min_region_share * len(f))))
     # A region's class is the area-weighted majority of its faces.
     n_regions = int(region.max()) + 1
     frac_area = np.bincount(region, weights=areas * is_fracture, minlength=n_regions)
     all_area = np.bincount(region, weights=areas, minlength=n_regions)
     region_is_fracture = frac_area > 0.5 * all_area
-    return Segmentation(region, region_is_fracture, rough, angle, normals, areas, topo)
-
-
-def _majority_smooth(labels: np.ndarray, edge_faces: np.ndarray, n: int, rounds: int) -> np.ndarray:
-    """Each face takes the majority label of itself and its edge neighbours, a few times."""
-    a, b = edge_faces[:, 0], edge_faces[:, 1]
-    degree = np.bincount(a, minlength=n) + np.bincount(b, minlength=n) + 1
-    for _ in range(rounds):
-        x = labels.astype(np.int64)
-        votes = x + np.bincount(a, weights=x[b], minlength=n) + np.bincount(b, weights=x[a], minlength=n)
-        labels = votes * 2 > degree
-    return labels
+    # Neighbouring fracture regions form one fracture patch (one set of contours).
+    fracture = region_is_fracture[region]
+    same = (region[e0] == region[e1]) | (fracture[e0] & fracture[e1])
+    patch = _components(len(f), topo.edge_faces[same])
+    patch_is_fracture = np.zeros(int(patch.max()) + 1, bool)
+    patch_is_fracture[patch[fracture]] = True
+    return Segmentation(patch, patch_is_fracture, rough, angle, normals, areas, topo)
 
 
 def _components(n: int, edges: np.ndarray) -> np.ndarray:

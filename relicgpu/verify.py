@@ -27,6 +27,8 @@ class Verification:
 class SurfaceSample:
     """Points of a fragment used by ICP and verification."""
     fracture: np.ndarray  # (P,3) points on fracture surfaces
+    fracture_region: np.ndarray  # (P,) the fracture patch of each of those points
+    fracture_normals: np.ndarray  # (P,3) outward unit normals there
     surface: np.ndarray  # (Q,3) points of the whole surface
     normals: np.ndarray  # (Q,3) outward unit normals at `surface`
 
@@ -44,18 +46,23 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
            max_rmse: float, min_overlap: float, depth: float, max_penetration: float) -> Verification:
     """Check b moved by `transform` against a (all lengths absolute)."""
     b_frac = apply(transform, b.fracture)
-    _, d_ba = backend.nearest_neighbors(b_frac, a.fracture)
-    _, d_ab = backend.nearest_neighbors(a.fracture, b_frac)
+    i_ba, d_ba = backend.nearest_neighbors(b_frac, a.fracture)
+    i_ab, d_ab = backend.nearest_neighbors(a.fracture, b_frac)
     d_ba, d_ab = np.asarray(d_ba, np.float64), np.asarray(d_ab, np.float64)
     in_b, in_a = d_ba < contact, d_ab < contact
     overlap = float(max(in_b.mean(), in_a.mean()))
-    both = np.concatenate([d_ba[in_b], d_ab[in_a]])
+    # residual: distance to the other surface's tangent plane (two samplings of one surface
+    # never share points, so point-to-point distances would measure the sampling, not the fit)
+    plane_b = np.einsum("ij,ij->i", b_frac - a.fracture[np.asarray(i_ba)], a.fracture_normals[np.asarray(i_ba)])
+    b_normals = b.fracture_normals @ transform[:3, :3].T
+    plane_a = np.einsum("ij,ij->i", a.fracture - b_frac[np.asarray(i_ab)], b_normals[np.asarray(i_ab)])
+    both = np.concatenate([plane_b[in_b], plane_a[in_a]])
     rmse = float(np.sqrt(np.mean(both ** 2))) if len(both) else float("inf")
 
-    pen_b = _inside_share(apply(transform, b.surface), a.surface, a.normals, depth, backend)
+    pen_b = _inside_share(apply(transform, b.surface), a, depth, contact, backend)
     # a's surface in b's frame is the same check with b fixed
     inv = np.linalg.inv(transform)
-    pen_a = _inside_share(apply(inv, a.surface), b.surface, b.normals, depth, backend)
+    pen_a = _inside_share(apply(inv, a.surface), b, depth, contact, backend)
     penetration = float(max(pen_a, pen_b))
 
     if overlap < min_overlap:
@@ -68,8 +75,19 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
     return Verification(overlap, rmse, penetration, True, "accepted")
 
 
-def _inside_share(points: np.ndarray, surface: np.ndarray, normals: np.ndarray, depth: float, backend) -> float:
-    idx, _ = backend.nearest_neighbors(points, surface)
+def _inside_share(points: np.ndarray, other: SurfaceSample, depth: float, contact: float, backend) -> float:
+    """Share of `points` (outside the contact zone) lying deeper than `depth` behind the nearest
+    surface point of `other`, by that point's outward normal."""
+    if len(points) == 0:
+        return 0.0
+    if len(other.fracture):
+        _, d = backend.nearest_neighbors(points, other.fracture)
+        points = points[np.asarray(d) > 2 * contact]  # the contact zone touches by design
+        if len(points) == 0:
+            return 0.0
+    idx, dist = backend.nearest_neighbors(points, other.surface)
     idx = np.asarray(idx, np.int64)
-    signed = np.einsum("ij,ij->i", points - surface[idx], normals[idx])
-    return float(np.mean(signed < -depth)) if len(points) else 0.0
+    signed = np.einsum("ij,ij->i", points - other.surface[idx], other.normals[idx])
+    # far from the other surface the nearest normal says nothing about inside or outside
+    near = np.asarray(dist) < 8 * depth
+    return float(np.sum((signed < -depth) & near)) / len(points)
