@@ -197,3 +197,35 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
         ok = w.sum(axis=1) >= 3
         poses[ok] = step[ok] @ poses[ok]
     return poses, share
+
+
+def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, init: np.ndarray,
+                          backend, iterations: int, cutoff: float) -> np.ndarray:
+    """Polish a converged pose by minimising distances to the target's tangent planes.
+
+    Two samplings of one surface never share points, so point-to-point ICP stops at the
+    sampling's graininess; the linearised point-to-plane step (6x6 normal equations)
+    goes below it. Pairs farther than `cutoff` are left out.
+    """
+    pose = np.array(init, np.float64)
+    for _ in range(iterations):
+        moved = apply(pose, source)
+        idx, dist = backend.nearest_neighbors(moved, target)
+        idx = np.asarray(idx, np.int64)
+        keep = np.asarray(dist) < cutoff
+        if keep.sum() < 6:
+            break
+        p, q, n = moved[keep], target[idx[keep]], target_normals[idx[keep]]
+        a = np.hstack([np.cross(p, n), n])
+        b = -np.einsum("ij,ij->i", p - q, n)
+        try:
+            x = np.linalg.solve(a.T @ a + 1e-12 * np.eye(6), a.T @ b)
+        except np.linalg.LinAlgError:
+            break
+        step = np.eye(4)
+        step[:3, :3] = axis_rotation(x[:3] / (np.linalg.norm(x[:3]) or 1.0), float(np.linalg.norm(x[:3])))
+        step[:3, 3] = x[3:]
+        pose = step @ pose
+        if np.linalg.norm(x) < 1e-9:
+            break
+    return pose

@@ -46,12 +46,16 @@ class Params:
     min_patch_share: float = 0.15    # ... if at least this share of the largest patch's area
     patch_turns: int = 16            # turns about the common normal tried per patch pair
     screen_points: int = 400         # points per start in the short batched ICP that ranks starts
-    screen_iterations: int = 10
+    screen_iterations: int = 10      # ... for every start
+    screen_keep: int = 24            # the best starts then run ...
+    screen_more_iterations: int = 30  # ... this many rounds more
+    screen_reject: float = 0.1       # pairs farther than this are left out of the ranking fits
 
     # ICP (Eq. 34-35, Alg. 5)
     icp_points: int = 2500           # fracture points sampled per fragment
     icp_iterations: int = 60
     icp_tolerance: float = 1e-5      # stop when the mean distance d changes less than this
+    plane_iterations: int = 8        # point-to-plane polish after ICP
     icp_reject: float = 0.03         # nearest pairs farther than this are not used in the fit
 
     # verification

@@ -14,7 +14,7 @@ from . import contour as contour_mod
 from . import features as features_mod
 from . import fusion as fusion_mod
 from .backends import resolve
-from .icp import batched_icp, facing_poses, icp, ransac_poses
+from .icp import IcpResult, batched_icp, facing_poses, icp, ransac_poses, refine_point_to_plane
 from .io import Fragment
 from .params import Params
 from .segment import segment
@@ -219,10 +219,15 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     if starts:
         # rank every start by a short batched ICP on a small sample, keep the best few
         sub_b = pb.sample.fracture[:: max(1, len(pb.sample.fracture) // params.screen_points)]
+        reject, floor = params.screen_reject * scale, params.contact_distance * scale
         poses, share = batched_icp(sub_b, pa.sample.fracture, np.array(starts), be, params.screen_iterations,
-                                   params.icp_reject * scale, params.contact_distance * scale)
+                                   reject, floor)
+        # the most promising starts go on longer (a start can be 20 degrees off)
+        keep = np.argsort(-share, kind="stable")[: params.screen_keep]
+        poses, share = batched_icp(sub_b, pa.sample.fracture, poses[keep], be, params.screen_more_iterations,
+                                   reject, floor)
         order = np.argsort(-share, kind="stable")[: params.hypotheses]
-        candidates = [(share[k], poses[k], *origins[k][1:]) for k in order]
+        candidates = [(share[k], poses[k], *origins[keep[k]][1:]) for k in order]
     timings["coarse"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -230,6 +235,9 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     for count, pose, ca, cb, pairs in candidates:
         fit = icp(pb.sample.fracture, pa.sample.fracture, pose, be, params.icp_iterations,
                   params.icp_tolerance * scale, params.icp_reject * scale, params.contact_distance * scale)
+        polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
+                                         fit.transform, be, params.plane_iterations, params.contact_distance * scale)
+        fit = IcpResult(polished, fit.mean_distance, fit.iterations)
         ver = verify(pa.sample, pb.sample, fit.transform, be, params.contact_distance * scale,
                      params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
                      params.max_penetration)
