@@ -433,7 +433,7 @@ def choose_voxel(points: np.ndarray, max_points: int) -> float:
     """The smallest voxel edge (within 5%) that leaves at most max_points occupied voxels."""
     lo = points.min(0)
     diag = float(np.linalg.norm(points.max(0) - lo))
-    # Bisect on log(voxel); a subsample estimates the count, a final pass checks it.
+    # Bisect on log(voxel): the count of occupied voxels falls as they grow.
     small, big = diag * 1e-6, diag
     for _ in range(40):
         mid = np.sqrt(small * big)
@@ -448,31 +448,25 @@ def choose_voxel(points: np.ndarray, max_points: int) -> float:
 
 def _tet_geometry(q: np.ndarray, simplices: np.ndarray, chunk: int = 500_000):
     """Per tetrahedron: circumradius of the face opposite each vertex (T,4), six times the
-    signed volume, the longest edge and the thickness (smallest altitude)."""
+    signed volume, and the longest edge."""
     n = len(simplices)
     face_radius = np.empty((n, 4))
     volume6 = np.empty(n)
     longest = np.empty(n)
-    thickness = np.empty(n)
     for s in range(0, n, chunk):
         p = q[simplices[s:s + chunk]]  # (t,4,3)
         edges = {(i, j): p[:, j] - p[:, i] for i in range(4) for j in range(i + 1, 4)}
         sq = {key: np.einsum("ij,ij->i", e, e) for key, e in edges.items()}
         longest[s:s + chunk] = np.sqrt(np.max(np.stack(list(sq.values())), axis=0))
-        vol6 = np.einsum("ij,ij->i", np.cross(edges[0, 1], edges[0, 2]), edges[0, 3])
-        volume6[s:s + chunk] = vol6
-        max_area2 = np.zeros(len(p))
+        volume6[s:s + chunk] = np.einsum("ij,ij->i", np.cross(edges[0, 1], edges[0, 2]), edges[0, 3])
         for k in range(4):
             i, j, m = (v for v in range(4) if v != k)
             cross = np.cross(edges[i, j], edges[i, m])
             area2 = np.sqrt(np.einsum("ij,ij->i", cross, cross))  # twice the area
-            max_area2 = np.maximum(max_area2, area2)
             with np.errstate(divide="ignore", invalid="ignore"):
                 r = np.sqrt(sq[i, j] * sq[i, m] * sq[j, m]) / (2.0 * area2)
             face_radius[s:s + chunk, k] = np.where(area2 > 0, r, np.inf)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            thickness[s:s + chunk] = np.where(max_area2 > 0, np.abs(vol6) / max_area2, 0.0)
-    return face_radius, volume6, longest, thickness
+    return face_radius, volume6, longest
 
 
 # Faces of a positively oriented tetrahedron (v0..v3), wound outwards; row k is opposite vertex k.
@@ -498,18 +492,14 @@ class _Tets:
         self.simplices = tri.simplices.astype(np.int64)
         self.neighbors = tri.neighbors.astype(np.int64)
         self.n_points = len(q)
-        self.face_radius, self.volume6, self.longest, self.thickness = _tet_geometry(q, self.simplices)
-        self._edge_keys = None
+        self.face_radius, self.volume6, self.longest = _tet_geometry(q, self.simplices)
 
-    @property
-    def edge_keys(self) -> np.ndarray:
-        """(T,6) keys of the tetrahedra's edges (lo * n + hi), in the order of _TET_EDGES."""
-        if self._edge_keys is None:
-            s = self.simplices
-            lo = np.stack([np.minimum(s[:, i], s[:, j]) for i, j in _TET_EDGES], 1)
-            hi = np.stack([np.maximum(s[:, i], s[:, j]) for i, j in _TET_EDGES], 1)
-            self._edge_keys = lo * self.n_points + hi
-        return self._edge_keys
+    def edge_keys(self, which: np.ndarray) -> np.ndarray:
+        """(len(which),6) keys (lo * n + hi) of the edges of the given tetrahedra, in the order of _TET_EDGES."""
+        s = self.simplices[which]
+        lo = np.stack([np.minimum(s[:, i], s[:, j]) for i, j in _TET_EDGES], 1)
+        hi = np.stack([np.maximum(s[:, i], s[:, j]) for i, j in _TET_EDGES], 1)
+        return lo * self.n_points + hi
 
 
 def _outside_by_flood(tets: _Tets, alpha: float) -> np.ndarray:
@@ -603,9 +593,10 @@ def _pair_incidences(tets: _Tets, inside: np.ndarray, faces: np.ndarray, face_te
         ends[bad_keys // n] = True
         ends[bad_keys % n] = True
         maybe = np.nonzero(inside & (ends[tets.simplices].sum(axis=1) >= 2))[0]
-        tt, ss = np.nonzero(np.isin(tets.edge_keys[maybe], bad_keys))
+        maybe_keys = tets.edge_keys(maybe)
+        tt, ss = np.nonzero(np.isin(maybe_keys, bad_keys))
+        e_idx = np.searchsorted(bad_keys, maybe_keys[tt, ss])
         tt = maybe[tt]
-        e_idx = np.searchsorted(bad_keys, tets.edge_keys[tt, ss])
         node_keys = np.unique(e_idx * n_tets + tt)
         rows, cols = [], []
         for c in (0, 1):

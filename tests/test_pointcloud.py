@@ -311,6 +311,17 @@ def test_a_ring_keeps_its_hole():
     assert hausdorff(mesh, torus) < 0.01 * np.linalg.norm(torus.extents)
 
 
+def test_a_small_hole_in_the_scan_is_closed_over_with_a_note():
+    pts, _ = sphere_points(20000, seed=4)
+    pts = pts[pts[:, 2] < 0.99]  # a cap of radius 0.14 left unscanned
+    res = pc.triangulate(pts)
+    assert_closed_outward_one_body(res.vertices, res.faces)
+    assert any("alpha grown" in n for n in res.notes)
+    mesh = trimesh.Trimesh(res.vertices, res.faces, process=False)
+    on_mesh, _ = trimesh.sample.sample_surface(mesh, 30000, seed=3)
+    assert np.abs(np.linalg.norm(on_mesh, axis=1) - 1).max() < 0.01 * 2 * np.sqrt(3)
+
+
 def test_thinning_keeps_large_clouds_under_max_points():
     pts, _ = sphere_points(60000, noise=0.0005)
     voxel = pc.choose_voxel(pts, 20000)
