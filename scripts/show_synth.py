@@ -39,7 +39,8 @@ def placed_back_from_result(result: synth.SynthResult):
               for f, lab in zip(result.placed_back(), result.fracture_faces)]
     p = result.params
     title = (f"{result.shape}, {p['pieces']} pieces, seed {result.seed}, ~{p['faces']} faces, "
-             f"roughness {p['roughness']}, noise {p['noise']}; touching {result.touching}")
+             f"roughness {p['roughness']}, noise {p['noise']}; "
+             + (f"touching {result.touching}" if len(result.touching) <= 6 else f"{len(result.touching)} touching pairs"))
     return meshes, title
 
 
