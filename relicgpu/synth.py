@@ -49,8 +49,8 @@ SHAPES = ("vase", "torso", "slab")
 TRUTH_VERSION = 1
 
 # Fracture surface: fBm of Perlin noise, RMS height `roughness` (object units).
-FBM_MAX_OCTAVES = 4
-FBM_WAVELENGTH = 0.25  # of the coarsest octave, in object units (object diagonal = 1)
+FBM_MAX_OCTAVES = 6
+FBM_WAVELENGTH = 0.2  # of the coarsest octave, in object units (object diagonal = 1)
 # Pieces below this fraction of the mean piece volume make the cut be drawn again.
 MIN_VOLUME_FRACTION = 0.10
 MAX_CUT_ATTEMPTS = 60
@@ -561,10 +561,12 @@ def _fracture(obj, pieces, roughness, spacing, rng, bar):
 
 
 def _octaves(spacing):
-    """fBm octaves whose wavelength spans at least 5 grid steps (finer ones a scan at
-    this density could not show, and the grids would not match on them)."""
+    """fBm octaves whose wavelength spans at least 2.5 grid steps (finer ones a scan at
+    this density could not show). Real fracture surfaces are rough down to the scan's
+    resolution; with a high gain the finest octaves make them rougher than scanner noise
+    at the scale of the triangles, which is what tells fracture from original surface."""
     n = 1
-    while n < FBM_MAX_OCTAVES and FBM_WAVELENGTH / 2 ** n >= 5 * spacing:
+    while n < FBM_MAX_OCTAVES and FBM_WAVELENGTH / 2 ** n >= 2.5 * spacing:
         n += 1
     return n
 
@@ -619,7 +621,7 @@ def _heightfield_box(ga, gb, height, bottom):
     return verts, np.concatenate([top_tris, side, cap])
 
 
-def _fbm(reach, octaves, roughness, rng, gain=0.6):
+def _fbm(reach, octaves, roughness, rng, gain=0.8):
     """A random fractal height function h(x, y) over [-reach, reach]^2: Perlin noise
     octaves of halving wavelength, scaled to an RMS height of `roughness`."""
     layers, norm = [], 0.0
