@@ -198,7 +198,7 @@ export class FragmentScene {
       groups.get(g).push(r);
     }
     let cursor = null; // x of the right edge of what is laid out so far
-    const gap = (r) => 0.25 * r;
+    const gap = (r) => 0.5 * r;
     for (const members of groups.values()) {
       const sphere = sphereOf(members.map((r) => [r.assembledP, r.radius]));
       let shift = new THREE.Vector3();
