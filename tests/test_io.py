@@ -1,0 +1,84 @@
+"""Loading: every fault a user can cause gives a FragmentError naming the file and the fault."""
+import numpy as np
+import pytest
+import trimesh
+
+from relicgpu import FragmentError, load_fragment
+from relicgpu.io import atomic_write_bytes, fragment_from_arrays
+
+
+def _box(**kw):
+    return trimesh.creation.box(extents=(1, 2, 3), **kw)
+
+
+@pytest.mark.parametrize("suffix", [".stl", ".ply", ".obj", ".off", ".glb"])
+def test_each_format_loads(tmp_path, suffix):
+    path = tmp_path / f"box{suffix}"
+    _box().export(path)
+    frag = load_fragment(path)
+    assert frag.name == "box"
+    assert frag.vertices.dtype == np.float64 and frag.faces.dtype == np.int32
+    assert len(frag.faces) == 12
+    assert frag.size == pytest.approx(np.sqrt(14))
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(FragmentError, match=r"nope\.ply: no such file"):
+        load_fragment(tmp_path / "nope.ply")
+
+
+def test_unknown_format(tmp_path):
+    p = tmp_path / "scan.xyzw"
+    p.write_text("1 2 3\n")
+    with pytest.raises(FragmentError, match=r"scan\.xyzw: unknown format '\.xyzw'"):
+        load_fragment(p)
+
+
+def test_unreadable_file(tmp_path):
+    p = tmp_path / "garbage.stl"
+    p.write_bytes(b"\x00\x01 not an stl at all" * 3)
+    with pytest.raises(FragmentError, match=r"garbage\.stl: (unreadable|the mesh has no faces)"):
+        load_fragment(p)
+
+
+def test_no_faces(tmp_path):
+    p = tmp_path / "flat.off"
+    p.write_text("OFF\n3 0 0\n0 0 0\n1 0 0\n0 1 0\n")
+    with pytest.raises(FragmentError, match=r"flat\.off: .*(no faces|unreadable)"):
+        load_fragment(p)
+
+
+def test_nan_coordinates(tmp_path):
+    p = tmp_path / "nan.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
+    with pytest.raises(FragmentError, match=r"nan\.obj: 1 vertices have NaN or infinite coordinates"):
+        load_fragment(p)
+
+
+def test_several_bodies_says_how_many(tmp_path):
+    p = tmp_path / "two.stl"
+    scene = trimesh.util.concatenate([_box(), _box().apply_translation([5, 0, 0]), _box().apply_translation([0, 9, 0])])
+    scene.export(p)
+    with pytest.raises(FragmentError, match=r"two\.stl: the mesh has 3 separate bodies"):
+        load_fragment(p)
+
+
+def test_degenerate_and_duplicate_faces_are_cleaned_with_a_warning():
+    box = _box()
+    faces = np.vstack([box.faces, box.faces[:2], [[0, 0, 1]], [[0, 1, 1]]])
+    with pytest.warns(UserWarning, match="removed 2 degenerate and 2 duplicate faces"):
+        frag = fragment_from_arrays("box", box.vertices, faces)
+    assert len(frag.faces) == 12
+
+
+def test_open_mesh_is_accepted_and_noted():
+    box = _box()
+    frag = fragment_from_arrays("open", box.vertices, box.faces[:-1])
+    assert any("not watertight" in n for n in frag.notes)
+
+
+def test_atomic_write_leaves_no_partial_file(tmp_path):
+    target = tmp_path / "out.bin"
+    atomic_write_bytes(target, b"first")
+    assert target.read_bytes() == b"first"
+    assert [p.name for p in tmp_path.iterdir()] == ["out.bin"]
