@@ -1,9 +1,10 @@
 """`relicgpu demo`: break a synthetic object, assemble it, and open the viewer on it.
 
 The case goes to WORKSPACE/demo-<shape>-<pieces>p-s<seed>/ (fragments/ and
-truth.json from relicgpu.synth, assembly/ from relicgpu.assemble). A case made
-before with the same settings is reused, so a second start is quick; --fresh
-makes it again. The viewer serves the whole WORKSPACE.
+truth.json from relicgpu.synth, assembly/ from relicgpu.assemble). Fragments
+made before with the same settings are reused (--fresh makes them again), and
+the assembly is run again from its cache, so a second start is quick. The
+viewer serves the whole WORKSPACE.
 """
 from __future__ import annotations
 
@@ -39,14 +40,13 @@ def make_case(workspace: Path, shape: str = "vase", pieces: int = 6, seed: int =
     else:
         log(f"reusing the fragments in {frag_dir} (--fresh makes them again)")
 
-    if fresh or not (case / "assembly" / "assembly.json").is_file():
-        log("assembling them with relicgpu.assemble ...")
-        t0 = time.perf_counter()
-        summary = run_assembly(frag_dir, case / "assembly", lambda **kw: None, progress=True)
-        log(f"  {summary.get('placed', '?')} of {summary.get('fragments', '?')} fragments placed in "
-            f"{summary.get('groups', '?')} group(s), {time.perf_counter() - t0:.1f} s; outputs in {case / 'assembly'}")
-    else:
-        log(f"reusing the assembly in {case / 'assembly'}")
+    # Always assembled again: relicgpu.assemble keeps finished work in assembly/cache, keyed by
+    # the code that made it, so a rerun is quick and never shows an answer of older code.
+    log("assembling them with relicgpu.assemble ...")
+    t0 = time.perf_counter()
+    summary = run_assembly(frag_dir, case / "assembly", lambda **kw: None, progress=True)
+    log(f"  {summary.get('placed', '?')} of {summary.get('fragments', '?')} fragments placed in "
+        f"{summary.get('groups', '?')} group(s), {time.perf_counter() - t0:.1f} s; outputs in {case / 'assembly'}")
     return case
 
 
@@ -64,7 +64,7 @@ def cli_add_arguments(parser) -> None:
     parser.add_argument("--shape", default="vase", choices=SHAPES, help="the synthetic object (default vase)")
     parser.add_argument("--pieces", type=int, default=6, help="number of fragments (default 6)")
     parser.add_argument("--seed", type=int, default=1, help="random seed of the breakage (default 1)")
-    parser.add_argument("--fresh", action="store_true", help="make and assemble the case again even if it exists")
+    parser.add_argument("--fresh", action="store_true", help="break the object again even if its fragments exist")
     parser.add_argument("--no-browser", action="store_true", help="only print the viewer's address")
     parser.add_argument("--no-serve", action="store_true", help="make and assemble the case, then exit")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
