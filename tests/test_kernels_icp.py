@@ -140,3 +140,9 @@ def test_cross_covariance_zero_weights_and_empty(backend):
     cs, ct, h, wsum = backend.cross_covariance(s, s, np.zeros(5))
     assert wsum == 0.0 and not np.any(h) and not np.any(cs)
     assert backend.cross_covariance(np.zeros((0, 3)), np.zeros((0, 3)))[3] == 0.0
+
+
+def test_nearest_neighbours_large_arrays(device_backend):
+    # over 4 MB per array: CUDA backends stage these through pinned host memory
+    rng = np.random.default_rng()
+    _check_nn(device_backend, rng.random((200000, 3)) * 50 - 7, rng.random((180000, 3)) * 50)

@@ -176,3 +176,11 @@ def test_lcs_lengths_bad_pair_is_an_error(device_backend):
     values, offsets = _pack([np.ones(3)])
     with pytest.raises(ValueError):
         device_backend.lcs_lengths(values, offsets, values, offsets, np.array([[0, 1]]), 0.1)
+
+
+def test_flag_matrix_many_rows(backend):
+    # enough a values that the host splits the interval search over threads
+    rng = np.random.default_rng()
+    a = rng.normal(size=40000)
+    b = _f32(np.concatenate([rng.normal(size=40), a[:10] + 0.05, a[10:20] - 0.05]))
+    np.testing.assert_array_equal(backend.flag_matrix(a, b, 0.05), ref.flag_matrix(a, b, 0.05))
