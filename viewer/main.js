@@ -258,6 +258,9 @@ async function loadMatches(caseId, stale) {
     li.append(name, score);
     li.addEventListener('click', () => {
       for (const x of ui.matchList.children) x.classList.toggle('active', x === li);
+      view.clearMarkers();
+      state.picks = [];
+      setStatus(ui.pickStatus, '');
       showPair(m.a, m.b, m.transform);
       ui.matchResult.innerHTML = '';
       ui.matchResult.append(describeMatch({ ...m, accepted: m.used, reason: m.used ? 'used in the assembly' : 'not used in the assembly' }));
