@@ -237,7 +237,8 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
     Every fragment of a case is prepared at one scale, the median fragment size of the case (the
     scale relicgpu's group stages use), so its contours are those the head nodes index.
     trusted_hosts: the Host header names accepted (default: loopback names only, which stops
-    DNS-rebinding pages from reaching the API); None after serve() binds a non-loopback host.
+    DNS-rebinding pages from reaching the API); make_server() turns the check off for a
+    non-loopback host, which users reach by names the app cannot know.
     """
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
     vdir = viewer_dir()
