@@ -7,15 +7,17 @@ The float64 specification is in `relicgpu.mosaic` (`_led_numpy`, `_block_entropy
   separable passes (rows, then columns) so a pixel costs O(A), not O(A^2).
   Sums of a binary edge map are integers, exact in float32.
 - Block entropy (Eq. 8): for every block top-left (y, x) of a b x b block, the
-  quadratic entropy 1 - sum_l P(l)^2 of its quantised gray levels, from a
-  per-thread histogram of at most MAX_LEVELS bins.
+  quadratic entropy 1 - sum_l P(l)^2 of its gray levels, from a per-thread
+  histogram of at most MAX_LEVELS bins. Levels are real numbers in [0, L-1]; a
+  level v adds 1 - frac(v) to bin floor(v) and frac(v) to the next (integer
+  levels give the plain histogram).
 """
 from __future__ import annotations
 
 import warp as wp
 
 MAX_LEVELS = 64
-_counts_t = wp.types.vector(length=MAX_LEVELS, dtype=wp.int32)
+_counts_t = wp.types.vector(length=MAX_LEVELS, dtype=wp.float32)
 
 
 @wp.kernel
@@ -43,15 +45,19 @@ def led_cols(rows: wp.array2d(dtype=wp.float32), half: int, scale: float, out: w
 
 
 @wp.kernel
-def block_entropy(levels: wp.array2d(dtype=wp.int32), block: int, n_levels: int, out: wp.array2d(dtype=wp.float32)):
+def block_entropy(levels: wp.array2d(dtype=wp.float32), block: int, n_levels: int, out: wp.array2d(dtype=wp.float32)):
     y, x = wp.tid()
     counts = _counts_t()
     for dy in range(block):
         for dx in range(block):
-            lv = levels[y + dy, x + dx]
-            counts[lv] = counts[lv] + 1
-    s = int(0)
+            v = levels[y + dy, x + dx]
+            lo = wp.min(int(wp.floor(v)), n_levels - 1)
+            f = v - float(lo)
+            counts[lo] = counts[lo] + (1.0 - f)
+            if f > 0.0:
+                counts[lo + 1] = counts[lo + 1] + f
+    s = float(0.0)
     for lv in range(n_levels):
         s += counts[lv] * counts[lv]
     n = float(block * block)
-    out[y, x] = 1.0 - float(s) / (n * n)
+    out[y, x] = 1.0 - s / (n * n)

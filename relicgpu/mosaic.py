@@ -1,0 +1,868 @@
+"""Image mosaic of overlapping relic photographs (paper sections 3.3 and 3.4).
+
+`stitch(images)` places each image of a left-to-right sequence against the one
+before it and returns a `Mosaic`; `relicgpu mosaic LEFT RIGHT [MORE ...] -o OUT.png`
+is the command line. For one pair (left L, right R):
+
+1. Preprocess (3.3.1): 3x3 median filter, then the local normalisation of Eq. 1-3.
+2. Edges (3.3.1): Sobel gradient magnitude, binarised at Otsu's threshold.
+3. LED (Eq. 4): D = box mean of the binary edges over a (2A+1)^2 window (a kernel).
+4. Fuzzy C-means (Eq. 5-6) of the LED values of the search band into 3 classes,
+   centres started at max, mean, min, iterated until the centres stop moving.
+5. Feature centre: the low class is dropped; the LED of the two kept classes is
+   averaged again over the (2A+1)^2 window and the point with the largest
+   average is the centre of the feature region.
+6. Template width by Eq. 7, starting at width / 8.
+7. Local entropy (Eq. 8) of every block of the template and, for every block
+   position, of R (a kernel); coarse matching every `coarse_step` pixels with
+   sequential early stop, then fine matching pixel by pixel in a 5x5 search
+   over the cross-shaped feature area, tried at a few small rotations.
+8. A check that the match is real (normalised correlation), then the images
+   are composited with feathered blending over the overlap.
+
+Readings where the paper is ambiguous or would not work as printed (each is
+named again where it is implemented):
+
+- Eq. 1 with the sign branches is a linear map, G = M_i^d + sqrt(VAR_i^d/VAR_i) (I - M_i);
+  M_i, VAR_i are the mean and variance over a w x w window; Eq. 2's M^d and M_0^d
+  are one constant (`norm_mean`) and Eq. 3's Q_2 is alpha_2. With the default
+  alpha_1 = alpha_2 = 0 the result is exactly invariant to a gray-level change
+  a*I + b, which is the point of the step. VAR_i is floored at `norm_var_floor`
+  so flat regions do not blow sensor noise up to full contrast.
+- Edges are detected on the median-filtered image, not on the normalised one:
+  local normalisation gives every region the same contrast, so edge density
+  after it no longer tells textured regions from flat noisy ones. The
+  normalised image is what the entropy matching compares.
+- Eq. 8 as printed, H = -sum P(i)(P(i) - 1) = 1 - sum P(i)^2, is the quadratic
+  (Gini-Simpson) entropy, not Shannon's; it is used as printed. P is taken over
+  `levels` quantised gray levels of the normalised image: with 256 levels a
+  64-pixel block has nearly all P(i) = 1/64 and H carries no information.
+- "Recalculate the average of the two classes with larger LED": the mean over
+  the (2A+1)^2 window of D times the indicator of the two kept classes.
+- Eq. 7's "average C": the centre of the high class (the mean LED of all points
+  is below almost any point the step can pick, so Eq. 7 would never act).
+- The search band: the feature region must lie where the images overlap, so it
+  is searched in the last `min_overlap` of L's width and away from the top and
+  bottom by `max_shift` of the height. The template starts at width / 8 but at
+  least 4 blocks wide, and Eq. 7 may not grow it past the band.
+- The threshold Thre of the sequential detection: by default it is the full
+  cost of the candidate that leads after the first quarter of the blocks. It is
+  an upper bound of the minimum, so the early stop prunes only candidates that
+  cannot win and the result is that of the exhaustive search (faster, same answer).
+  A fixed `thre` can be given instead, as in the paper.
+- The cross-shaped area (two overlapping rectangles of blocks, each
+  `cross_fraction` of the template thick) is the feature area of the fine
+  search; the fine search also tries the template rotated by `angles` degrees
+  and keeps the best, so the offset and a small rotation come out together.
+- Offsets are exact at the feature point; with a rotation there is no single
+  translation, so the composite rotates the right image about that point.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from .io import FragmentError
+
+
+class MosaicError(FragmentError):
+    """A mosaic that cannot be made from these images (the message names the images and the fault)."""
+
+
+@dataclass(frozen=True)
+class MosaicParams:
+    median: int = 3                # 3.3.1: median filter size
+    norm_window: int = 15          # w of Eq. 1-3
+    norm_mean: float = 128.0       # M^d = M_0^d of Eq. 2
+    norm_var: float = 48.0 ** 2    # VAR_0^d of Eq. 3
+    alpha1: float = 0.0            # Eq. 2
+    alpha2: float = 0.0            # Eq. 3
+    norm_var_floor: float = 4.0 ** 2
+    led_half: int = 8              # A of Eq. 4
+    fcm_b: float = 2.0             # fuzzifier b of Eq. 5-6
+    fcm_tol: float = 1e-9          # convergence: centres move less than tol * (max D - min D)
+    fcm_max_iter: int = 1000
+    template_div: float = 8.0      # initial template width = image width / template_div
+    block: int = 8                 # entropy block size (pixels)
+    levels: int = 16               # gray levels for Eq. 8 (<= 64)
+    coarse_step: int = 2           # 3.4: a sub-window every 2 or 3 pixels
+    fine_radius: int = 2           # 3.4: 5x5 fine search
+    cross_fraction: float = 0.5    # thickness of each bar of the cross, as a fraction of the template
+    cross_length: float = 1.0      # length of the vertical bar, in template widths
+    angles: tuple = (-1.5, -0.75, 0.0, 0.75, 1.5)  # degrees tried in the fine search
+    thre: float | None = None      # sequential-detection threshold; None = exact (see module doc)
+    min_overlap: float = 0.2       # the overlap is at least this fraction of the left image's width
+    max_shift: float = 0.1         # perpendicular shift between neighbours, fraction of the height
+    min_correlation: float = 0.8   # normalised correlation a match needs to be accepted
+    retries: int = 4               # further feature regions tried when a match is rejected
+    soft_bins: bool = False
+    noise_floor_k: float = 0.0
+    block_stride: int = 0
+    smooth_sigma: float = 0.0
+
+
+@dataclass
+class PairMatch:
+    """Where `right` sits against `left`: right pixel p lies at left_point + R(angle)(p - right_point)."""
+    left_point: np.ndarray         # (2,) row, col of the feature centre in the left image
+    right_point: np.ndarray        # (2,) where it was found in the right image
+    angle: float                   # degrees
+    offset: np.ndarray             # (2,) left_point - right_point: the right origin in left coordinates
+    template_width: int
+    cost: float                    # T at the match: summed |entropy difference| over the cross blocks
+    correlation: float             # normalised correlation of template and match (the acceptance check)
+    fcm_centres: np.ndarray        # (3,) high, medium, low
+    fcm_iterations: int
+    timings: dict = field(default_factory=dict)
+
+
+@dataclass
+class Mosaic:
+    """offsets[i] is the (row, col) of image i's origin in `image`; image i is rotated by angles[i] degrees about it."""
+    offsets: np.ndarray            # (N, 2) float
+    image: np.ndarray
+    angles: np.ndarray = None      # (N,) degrees
+    matches: list = field(default_factory=list)  # PairMatch of (i, i+1)
+
+
+# --- kernels: LED box mean and block entropy ---------------------------------
+
+def _led_numpy(image: np.ndarray, half: int) -> np.ndarray:
+    """Eq. 4 in float64: the (2A+1)^2 box sum of `image` (zeros outside) over (2A+1)^2."""
+    e = np.asarray(image, np.float64)
+    k = 2 * half + 1
+    padded = np.pad(e, half + 1)[:-1, :-1]  # one leading zero row/col for the integral image
+    s = padded.cumsum(0).cumsum(1)
+    h, w = e.shape
+    total = s[k:k + h, k:k + w] - s[:h, k:k + w] - s[k:k + h, :w] + s[:h, :w]
+    return total / (k * k)
+
+
+def _block_entropy_numpy(levels: np.ndarray, block: int, n_levels: int) -> np.ndarray:
+    """Eq. 8 in float64 for every block x block block: out[y, x] = 1 - sum_l P_l^2 of
+    levels[y:y+block, x:x+block], where a level v counts max(0, 1 - |v - l|) in bin l
+    (a plain histogram for integer levels); shape (H-block+1, W-block+1)."""
+    q = np.asarray(levels, np.float64)
+    h, w = q.shape
+    oh, ow = h - block + 1, w - block + 1
+    sq = np.zeros((oh, ow))
+    for lv in range(n_levels):
+        member = np.clip(1.0 - np.abs(q - lv), 0.0, None)
+        s = np.pad(member, ((1, 0), (1, 0))).cumsum(0).cumsum(1)
+        count = s[block:, block:] - s[:oh, block:] - s[block:, :ow] + s[:oh, :ow]
+        sq += count * count
+    return 1.0 - sq / float(block * block) ** 2
+
+
+# A fixed work-group shape: PoCL compiles a kernel anew for every work-group size it meets.
+_CL_LOCAL = (16, 4)
+
+
+def _cl_global(width: int, height: int) -> tuple[int, int]:
+    return (-(-width // _CL_LOCAL[0]) * _CL_LOCAL[0], -(-height // _CL_LOCAL[1]) * _CL_LOCAL[1])
+
+
+def _cl_kernel(be, name: str):
+    """A kernel of mosaic.cl, the backend's cached one where it keeps them."""
+    if hasattr(be, "kernel"):
+        return be.kernel("mosaic.cl", name)
+    import pyopencl as cl
+    return cl.Kernel(be.program("mosaic.cl"), name)
+
+
+def _cl_lock(be):
+    """Kernel objects hold their arguments: one caller at a time on a shared backend."""
+    import contextlib
+    lock = getattr(be, "_lock", None)
+    return lock if lock is not None else contextlib.nullcontext()
+
+
+def led(image: np.ndarray, half: int, backend="numpy") -> np.ndarray:
+    """Local edge density (Eq. 4): the mean of `image` over the (2A+1)^2 window
+    centred on each pixel, pixels outside the image counting as 0. Same shape as image."""
+    from .backends import resolve
+    be = resolve(backend)
+    name = be.name
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"led needs a 2-D image, got shape {img.shape}")
+    if name.startswith("numpy"):
+        return _led_numpy(img, half)
+    scale = 1.0 / float((2 * half + 1) ** 2)
+    src = np.ascontiguousarray(img, np.float32)
+    h, w = src.shape
+    if name.startswith("warp-"):
+        import warp as wp
+        from .kernels.warp import mosaic as wk
+        d_src = wp.array(src, dtype=wp.float32, device=be.device)
+        d_rows = wp.empty((h, w), dtype=wp.float32, device=be.device)
+        d_out = wp.empty((h, w), dtype=wp.float32, device=be.device)
+        wp.launch(wk.led_rows, dim=(h, w), inputs=[d_src, int(half), d_rows], device=be.device)
+        wp.launch(wk.led_cols, dim=(h, w), inputs=[d_rows, int(half), float(scale), d_out], device=be.device)
+        return d_out.numpy()
+    if name.startswith("opencl"):
+        import pyopencl as cl
+        mf = cl.mem_flags
+        d_src = cl.Buffer(be.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=src)
+        d_rows = cl.Buffer(be.ctx, mf.READ_WRITE, src.nbytes)
+        d_out = cl.Buffer(be.ctx, mf.WRITE_ONLY, src.nbytes)
+        glob = _cl_global(w, h)
+        out = np.empty((h, w), np.float32)
+        with _cl_lock(be):
+            _cl_kernel(be, "mosaic_led_rows")(be.queue, glob, _CL_LOCAL, d_src, np.int32(h), np.int32(w),
+                                              np.int32(half), d_rows)
+            _cl_kernel(be, "mosaic_led_cols")(be.queue, glob, _CL_LOCAL, d_rows, np.int32(h), np.int32(w),
+                                              np.int32(half), np.float32(scale), d_out)
+            cl.enqueue_copy(be.queue, out, d_out)
+        return out
+    raise ValueError(f"backend {name!r} has no mosaic kernels")
+
+
+def block_entropy(levels: np.ndarray, block: int, n_levels: int, backend="numpy") -> np.ndarray:
+    """Local entropy (Eq. 8) of every block x block block of a quantised image (levels
+    in [0, n_levels-1], n_levels <= 64; real levels are split linearly between the two
+    nearest bins); out[y, x] is the block whose top-left is (y, x), shape (H-block+1, W-block+1)."""
+    from .backends import resolve
+    be = resolve(backend)
+    name = be.name
+    q = np.asarray(levels)
+    if q.ndim != 2 or q.shape[0] < block or q.shape[1] < block:
+        raise ValueError(f"block_entropy needs a 2-D image of at least {block}x{block}, got shape {q.shape}")
+    if not 1 <= n_levels <= 64:
+        raise ValueError(f"n_levels must be in 1..64, got {n_levels}")
+    if q.size and not (q.min() >= 0 and q.max() <= n_levels - 1):
+        raise ValueError(f"levels must lie in [0, {n_levels - 1}], got [{q.min()}, {q.max()}]")
+    if name.startswith("numpy"):
+        return _block_entropy_numpy(q, block, n_levels)
+    src = np.ascontiguousarray(q, np.float32)
+    h, w = src.shape
+    oh, ow = h - block + 1, w - block + 1
+    if name.startswith("warp-"):
+        import warp as wp
+        from .kernels.warp import mosaic as wk
+        d_src = wp.array(src, dtype=wp.float32, device=be.device)
+        d_out = wp.empty((oh, ow), dtype=wp.float32, device=be.device)
+        wp.launch(wk.block_entropy, dim=(oh, ow), inputs=[d_src, int(block), int(n_levels), d_out], device=be.device)
+        return d_out.numpy()
+    if name.startswith("opencl"):
+        import pyopencl as cl
+        mf = cl.mem_flags
+        d_src = cl.Buffer(be.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=src)
+        out = np.empty((oh, ow), np.float32)
+        d_out = cl.Buffer(be.ctx, mf.WRITE_ONLY, out.nbytes)
+        with _cl_lock(be):
+            _cl_kernel(be, "mosaic_block_entropy")(be.queue, _cl_global(ow, oh), _CL_LOCAL, d_src, np.int32(h),
+                                                   np.int32(w), np.int32(block), np.int32(n_levels), d_out)
+            cl.enqueue_copy(be.queue, out, d_out)
+        return out
+    raise ValueError(f"backend {name!r} has no mosaic kernels")
+
+
+# --- 3.3.1 preprocessing -------------------------------------------------------
+
+def noise_sigma(gray: np.ndarray) -> float:
+    """Standard deviation of white noise in an image (Immerkaer 1996): the mean absolute
+    response to the Laplacian-difference mask N, times sqrt(pi/2) / 6."""
+    img = np.asarray(gray, np.float64)
+    if min(img.shape) < 3:
+        return 0.0
+    mask = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
+    resp = ndimage.correlate(img, mask, mode="reflect")[1:-1, 1:-1]
+    return float(np.sqrt(np.pi / 2.0) / 6.0 * np.abs(resp).mean())
+
+
+def median3(gray: np.ndarray, size: int = 3) -> np.ndarray:
+    """The 3x3 median filter of 3.3.1 (edges replicated by reflection)."""
+    return ndimage.median_filter(np.asarray(gray, np.float64), size=size, mode="reflect")
+
+
+def local_normalise(gray: np.ndarray, window: int = 15, mean0: float = 128.0, var0: float = 48.0 ** 2,
+                    alpha1: float = 0.0, alpha2: float = 0.0, var_floor: float = 16.0) -> np.ndarray:
+    """Eq. 1-3. M_i, VAR_i: mean and variance over the window x window neighbourhood (reflected
+    at the border); M_i^d = M0 + alpha1 (M_i - M0) (Eq. 2, reading M^d = M_0^d = mean0);
+    VAR_i^d = VAR0 + alpha2 (VAR_i - VAR0) (Eq. 3);
+    G = M_i^d +/- sqrt(VAR_i^d (I - M_i)^2 / VAR_i), + where I > M_i (Eq. 1).
+    VAR_i is floored at var_floor (a flat patch would otherwise divide by ~0)."""
+    img = np.asarray(gray, np.float64)
+    m = ndimage.uniform_filter(img, window, mode="reflect")
+    var = ndimage.uniform_filter(img * img, window, mode="reflect") - m * m
+    var = np.maximum(var, var_floor)
+    m_d = mean0 + alpha1 * (m - mean0)
+    var_d = var0 + alpha2 * (var - var0)
+    dev = np.sqrt(var_d * (img - m) ** 2 / var)
+    return np.where(img > m, m_d + dev, m_d - dev)
+
+
+def edge_map(gray: np.ndarray, region=None) -> np.ndarray:
+    """Edge detection and binarisation (3.3.1): Sobel gradient magnitude above Otsu's threshold."""
+    from skimage.filters import threshold_otsu
+    img = np.asarray(gray, np.float64)
+    mag = np.hypot(ndimage.sobel(img, 0, mode="reflect"), ndimage.sobel(img, 1, mode="reflect"))
+    ref = mag if region is None else mag[region]
+    if not np.any(ref > ref.min()):
+        return np.zeros(img.shape, bool)
+    return mag > threshold_otsu(ref)
+
+
+def quantise(normalised: np.ndarray, levels: int, soft: bool = False) -> np.ndarray:
+    """Gray levels 0..levels-1 of a normalised image (values clipped to [0, 256))."""
+    g = np.clip(np.asarray(normalised, np.float64), 0.0, 255.999)
+    if soft:
+        return np.clip(g * (levels / 256.0) - 0.5, 0.0, levels - 1.0)
+    return (g * (levels / 256.0)).astype(np.int32)
+
+
+# --- 3.3.2 fuzzy C-means --------------------------------------------------------
+
+def fcm_memberships(values: np.ndarray, centres: np.ndarray, b: float) -> np.ndarray:
+    """Eq. 5: U_k(D) = |D - C_k|^(-2/(b-1)) / sum_m |D - C_m|^(-2/(b-1)), shape (n, K).
+    A value equal to one or more centres belongs to them alone (in equal shares)."""
+    d = np.abs(np.asarray(values, np.float64)[:, None] - np.asarray(centres, np.float64)[None, :])
+    zero = d == 0
+    p = 2.0 / (b - 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # U_k = 1 / sum_m (d_k / d_m)^p, stable when the d are tiny
+        ratio = (d[:, :, None] / d[:, None, :]) ** p
+        u = 1.0 / ratio.sum(2)
+    hit = zero.any(1)
+    u[hit] = zero[hit] / zero[hit].sum(1, keepdims=True)
+    return u
+
+
+@dataclass
+class FcmResult:
+    centres: np.ndarray    # (3,) in the order they were started: max, mean, min
+    labels: np.ndarray     # (n,) class with the largest membership
+    iterations: int
+    converged: bool
+
+
+def fuzzy_cmeans(values: np.ndarray, b: float = 2.0, tol: float = 1e-9, max_iter: int = 1000) -> FcmResult:
+    """Fuzzy C-means of 3.3.2 into 3 classes: centres started at max, mean, min (step 1),
+    memberships by Eq. 5 (step 2), centres by Eq. 6 (step 3), repeated until no centre
+    moves by more than tol * (max - min) (step 4); each value takes its largest membership.
+
+    Eq. 6 sums over points, so points with equal values contribute equally: the
+    iteration runs over the distinct values weighted by their counts (LED takes
+    at most (2A+1)^2 + 1 values), which gives the same centres far faster."""
+    v = np.asarray(values, np.float64).ravel()
+    if v.size == 0:
+        raise ValueError("fuzzy_cmeans needs at least one value")
+    if b <= 1:
+        raise ValueError(f"the fuzzifier b must be > 1, got {b}")
+    uniq, inverse, counts = np.unique(v, return_inverse=True, return_counts=True)
+    c = np.array([v.max(), v.mean(), v.min()])
+    scale = max(v.max() - v.min(), np.finfo(float).tiny)
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):
+        u = fcm_memberships(uniq, c, b)
+        wgt = u ** b * counts[:, None]
+        new = (wgt * uniq[:, None]).sum(0) / np.maximum(wgt.sum(0), np.finfo(float).tiny)
+        moved = np.abs(new - c).max()
+        c = new
+        if moved <= tol * scale:
+            converged = True
+            break
+    labels = fcm_memberships(uniq, c, b).argmax(1)[inverse]
+    return FcmResult(c, labels, it, converged)
+
+
+# --- 3.4 local entropy matching ---------------------------------------------------
+
+def quadratic_entropy(block_levels: np.ndarray, n_levels: int) -> float:
+    """Eq. 8 for one sub-image: H = -sum_i P(i) (P(i) - 1)."""
+    q = np.asarray(block_levels, np.float64).ravel()
+    p = np.clip(1.0 - np.abs(q[:, None] - np.arange(n_levels)[None, :]), 0.0, None).sum(0) / q.size
+    return float(-(p * (p - 1.0)).sum())
+
+
+def sequential_costs(template_h: np.ndarray, block_offsets: np.ndarray, hmap: np.ndarray,
+                     cand: np.ndarray, thre: float | None = None) -> np.ndarray:
+    """T for each candidate top-left cand[i] = (y, x): sum over blocks k of
+    |template_h[k] - hmap[y + oy_k, x + ox_k]|, adding blocks in order and dropping a
+    candidate as soon as its running T passes `thre` (its T is then +inf).
+    thre=None: the full T of the candidate leading after a quarter of the blocks,
+    an upper bound of the minimum, so only candidates that cannot win are dropped."""
+    cand = np.asarray(cand, np.int64).reshape(-1, 2)
+    n, k = len(cand), len(template_h)
+    total = np.zeros(n)
+    if n == 0:
+        return total
+    alive = np.arange(n)
+    start = 0
+    if thre is None:
+        start = max(1, k // 4)
+        for j in range(start):
+            total += np.abs(template_h[j] - hmap[cand[:, 0] + block_offsets[j, 0], cand[:, 1] + block_offsets[j, 1]])
+        lead = int(np.argmin(total))
+        y, x = cand[lead]
+        thre = float(np.abs(template_h - hmap[y + block_offsets[:, 0], x + block_offsets[:, 1]]).sum())
+        thre += 1e-9 * (1.0 + thre)  # the running sums add in another order: keep the leader itself
+        alive = alive[total <= thre]
+    for j in range(start, k):
+        if alive.size == 0:
+            break
+        c = cand[alive]
+        total[alive] += np.abs(template_h[j] - hmap[c[:, 0] + block_offsets[j, 0], c[:, 1] + block_offsets[j, 1]])
+        alive = alive[total[alive] <= thre]
+    out = np.full(n, np.inf)
+    out[alive] = total[alive]
+    return out
+
+
+def _ncc(a: np.ndarray, b: np.ndarray) -> float:
+    a = a - a.mean()
+    b = b - b.mean()
+    den = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / den) if den > 0 else 0.0
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """Luminance in [0, 255] as float64 from a gray, RGB or RGBA array (uint8, uint16 or float in [0, 1])."""
+    img = np.asarray(image)
+    if img.dtype == np.uint8:
+        scale = 1.0
+    elif img.dtype == np.uint16:
+        scale = 255.0 / 65535.0
+    elif img.dtype.kind == "f":
+        scale = 255.0 if img.size and float(np.nanmax(img)) <= 1.0 else 1.0
+    else:
+        scale = 1.0
+    f = img.astype(np.float64) * scale
+    if f.ndim == 3:
+        f = f[..., :3] @ np.array([0.299, 0.587, 0.114]) if f.shape[2] >= 3 else f[..., 0]
+    return f
+
+
+def _feature_geometry(width: int, height: int, p: MosaicParams):
+    """The initial template width and the ranges (inclusive) of valid feature centres in the
+    left image: the template inside the last min_overlap of the width, the cross-shaped area
+    at least max_shift of the height from the top and the bottom."""
+    tw0 = int(round(max(width / p.template_div, 4 * p.block) / p.block)) * p.block
+    band_left = int(np.floor(width * (1.0 - p.min_overlap)))
+    margin = int(np.ceil(height * p.max_shift))
+    tall = _area_height(tw0, p)
+    cols = (band_left + tw0 // 2, width - (tw0 - tw0 // 2))
+    rows = (margin + tall // 2, height - margin - (tall - tall // 2))
+    return tw0, cols, rows
+
+
+def _area_height(width: int, p: MosaicParams) -> int:
+    return max(width, int(round(p.cross_length * width)))
+
+
+def cross_blocks(width: int, p: MosaicParams) -> tuple[np.ndarray, tuple]:
+    """Top-left corners, relative to the feature centre, of the blocks of the cross-shaped area
+    for a template `width` wide: a horizontal bar `width` long and a vertical bar `cross_length`
+    widths long, each `cross_fraction` of the width thick (at least one block), crossing at the
+    centre. Blocks lie on a `block_stride` grid over the bounding box and count when they fit
+    inside either bar. Returns (K, 2) offsets and the box (top, left, height, width)."""
+    b = p.block
+    stride = p.block_stride or b
+    height = _area_height(width, p)
+    top, left = -(height // 2), -(width // 2)
+    thick = min(width, max(b, int(round(width * p.cross_fraction))))
+    ys = np.arange(top, top + height - b + 1, stride)
+    xs = np.arange(left, left + width - b + 1, stride)
+    oy, ox = np.meshgrid(ys, xs, indexing="ij")
+    lo = -(thick // 2)
+    in_h = (oy >= lo) & (oy + b <= lo + thick)
+    in_v = (ox >= lo) & (ox + b <= lo + thick)
+    keep = in_h | in_v
+    return np.stack([oy[keep], ox[keep]], 1), (top, left, height, width)
+
+
+@dataclass
+class FeatureRegion:
+    """The benchmark template of 3.3.2: its centre (row, col) in the left image and width."""
+    centre: tuple
+    width: int
+    led: np.ndarray             # D of Eq. 4 over the whole left image
+    fcm: FcmResult              # the clustering of the band's LED values
+    centres: np.ndarray         # (3,) FCM centres sorted high, medium, low
+
+
+@dataclass
+class Prepared:
+    """One image after 3.3.1: gray, median-filtered, normalised (Eq. 1-3) and quantised."""
+    gray: np.ndarray
+    smoothed: np.ndarray
+    normalised: np.ndarray
+    levels: np.ndarray
+
+
+def prepare_image(image: np.ndarray, params: MosaicParams | None = None) -> Prepared:
+    p = params or MosaicParams()
+    gray = to_gray(image)
+    smoothed = median3(gray, p.median)
+    floor = p.norm_var_floor
+    if p.noise_floor_k > 0:
+        floor = max(floor, (p.noise_floor_k * noise_sigma(gray)) ** 2)
+    base = ndimage.gaussian_filter(smoothed, p.smooth_sigma) if p.smooth_sigma > 0 else smoothed
+    normalised = local_normalise(base, p.norm_window, p.norm_mean, p.norm_var, p.alpha1, p.alpha2, floor)
+    return Prepared(gray, smoothed, normalised, quantise(normalised, p.levels, p.soft_bins))
+
+
+def template_width(width: float, led_centre: float, c: float) -> float:
+    """Eq. 7: templatewidth = templatewidth * (C / D(i, j)) when D(i, j) < C, else unchanged.
+    C is read as the centre of the high LED class (see the module notes)."""
+    if 0 < led_centre < c:
+        return width * (c / led_centre)
+    return float(width)
+
+
+def find_feature_regions(left: Prepared, params: MosaicParams | None = None, backend="numpy",
+                         name: str = "left", count: int = 1) -> list[FeatureRegion]:
+    """3.3.2: edges, LED (Eq. 4), FCM (Eq. 5-6) over the band where the overlap must be, the
+    centre of the feature region and the template width (Eq. 7). The first region is the
+    paper's; the next ones (up to `count`) are the next-best centres at least a template
+    width away from those before, for when a match is rejected."""
+    p = params or MosaicParams()
+    hl, wl = left.gray.shape
+    tw0, (c0, c1), (r0, r1) = _feature_geometry(wl, hl, p)
+    if c0 > c1 or r0 > r1:
+        raise MosaicError(f"{name}: image too small ({wl}x{hl} px): a {tw0}-px template must fit in the last "
+                          f"{p.min_overlap:.0%} of its width and {p.max_shift:.0%} from top and bottom")
+    edges = edge_map(left.smoothed, (slice(r0, r1 + 1), slice(c0, c1 + 1)))
+    dmap = np.asarray(led(edges.astype(np.float32), p.led_half, backend), np.float64)
+    band = dmap[r0:r1 + 1, c0:c1 + 1]
+    if band.max() <= 0:
+        raise MosaicError(f"{name}: no edges in the part that must overlap the next image: no feature region")
+    fcm = fuzzy_cmeans(band, p.fcm_b, p.fcm_tol, p.fcm_max_iter)
+    order = np.argsort(-fcm.centres)  # high, medium, low
+    keep = np.zeros(dmap.shape)
+    keep[r0:r1 + 1, c0:c1 + 1] = (fcm.labels != order[2]).reshape(band.shape)
+    # "the average of the two kept classes is recalculated": their LED, averaged over the window
+    score = np.asarray(led(dmap * keep, p.led_half, backend), np.float64)
+    score_band = np.where(keep[r0:r1 + 1, c0:c1 + 1] > 0, score[r0:r1 + 1, c0:c1 + 1], -np.inf)
+    c_high = fcm.centres[order[0]]
+    band_left = int(np.floor(wl * (1.0 - p.min_overlap)))
+    margin = int(np.ceil(hl * p.max_shift))
+    regions = []
+    yy, xx = np.mgrid[r0:r1 + 1, c0:c1 + 1]
+    while len(regions) < count and np.isfinite(score_band).any():
+        iy, ix = np.unravel_index(int(np.argmax(score_band)), score_band.shape)
+        cy, cx = r0 + iy, c0 + ix
+        tw = template_width(tw0, dmap[cy, cx], c_high)
+        room_w = 2 * min(cx - band_left, wl - 1 - cx) + 1
+        room_h = (2 * min(cy - margin, hl - 1 - margin - cy) + 1) / max(1.0, p.cross_length)
+        tw = max(tw0, int(min(tw, room_w, room_h) // p.block) * p.block)
+        regions.append(FeatureRegion((int(cy), int(cx)), int(tw), dmap, fcm, fcm.centres[order]))
+        score_band[np.maximum(np.abs(yy - cy), np.abs(xx - cx)) < tw0] = -np.inf
+    return regions
+
+
+def find_feature_region(left: Prepared, params: MosaicParams | None = None, backend="numpy",
+                        name: str = "left") -> FeatureRegion:
+    """The paper's feature region (the first of `find_feature_regions`)."""
+    return find_feature_regions(left, params, backend, name, 1)[0]
+
+
+def _sample_box(image: np.ndarray, centre, box, angle_deg: float) -> np.ndarray:
+    """The box (top, left, height, width) around `centre`, sampled through a rotation by
+    angle_deg about the centre: out[u] = image[centre + R(angle) u], bilinear."""
+    top, left, height, width = box
+    uy, ux = np.meshgrid(np.arange(top, top + height, dtype=np.float64),
+                         np.arange(left, left + width, dtype=np.float64), indexing="ij")
+    a = np.deg2rad(angle_deg)
+    ca, sa = np.cos(a), np.sin(a)
+    ry = centre[0] + ca * uy + sa * ux
+    rx = centre[1] - sa * uy + ca * ux
+    return ndimage.map_coordinates(np.asarray(image, np.float64), [ry, rx], order=1, mode="nearest")
+
+
+def match_entropy(left: Prepared, right: Prepared, region: FeatureRegion, params: MosaicParams | None = None,
+                  backend="numpy", names=("left", "right")):
+    """3.4: coarse then fine local-entropy matching of the cross-shaped feature area in the
+    right image. Returns (row, col, angle, cost): where the feature centre lies in the right
+    image, the rotation (degrees) that matched best and T there."""
+    p = params or MosaicParams()
+    cy, cx = region.centre
+    hr, wr = right.gray.shape
+    offsets, box = cross_blocks(region.width, p)
+    # the perpendicular shift is at most max_shift of the height (the band was chosen on that premise)
+    shift = int(np.ceil(p.max_shift * left.gray.shape[0]))
+    y_lo, y_hi = max(-offsets[:, 0].min(), cy - shift), min(hr - p.block - offsets[:, 0].max(), cy + shift)
+    x_lo, x_hi = -offsets[:, 1].min(), wr - p.block - offsets[:, 1].max()
+    if y_lo > y_hi or x_lo > x_hi:
+        raise MosaicError(f"{names[1]}: image too small ({wr}x{hr} px) for the {box[3]}x{box[2]}-px feature area "
+                          f"of {names[0]}")
+    hmap = np.asarray(block_entropy(right.levels, p.block, p.levels, backend), np.float64)
+
+    def template_entropies(angle):
+        top, left_ = box[0], box[1]
+        if angle == 0:
+            patch = left.levels[cy + top:cy + top + box[2], cx + left_:cx + left_ + box[3]]
+        else:
+            patch = quantise(_sample_box(left.normalised, (cy, cx), box, angle), p.levels, p.soft_bins)
+        dense = _block_entropy_numpy(patch, p.block, p.levels)
+        return dense[offsets[:, 0] - top, offsets[:, 1] - left_]
+
+    h0 = template_entropies(0.0)
+    ys = np.arange(y_lo, y_hi + 1, p.coarse_step)
+    xs = np.arange(x_lo, x_hi + 1, p.coarse_step)
+    cand = np.stack(np.meshgrid(ys, xs, indexing="ij"), -1).reshape(-1, 2)
+    coarse = sequential_costs(h0, offsets, hmap, cand, p.thre)
+    if not np.isfinite(coarse).any():
+        raise MosaicError(f"{names[0]} and {names[1]}: no overlap found (every sub-window passed the threshold)")
+    by, bx = cand[int(np.argmin(coarse))]
+    # fine: pixel by pixel in a (2r+1)^2 window at each angle; a best on the window's edge
+    # means the minimum lies beyond it, so the window moves there (a few times at most)
+    templates = {a: (h0 if a == 0 else template_entropies(a)) for a in p.angles}
+    r = p.fine_radius
+    best = (np.inf, 0.0, int(by), int(bx))
+    for _ in range(4):
+        cy_, cx_ = best[2], best[3]
+        fy = np.arange(max(cy_ - r, y_lo), min(cy_ + r, y_hi) + 1)
+        fx = np.arange(max(cx_ - r, x_lo), min(cx_ + r, x_hi) + 1)
+        fine_cand = np.stack(np.meshgrid(fy, fx, indexing="ij"), -1).reshape(-1, 2)
+        for angle, ht in templates.items():
+            costs = sequential_costs(ht, offsets, hmap, fine_cand, None)
+            i = int(np.argmin(costs))
+            if costs[i] < best[0]:
+                best = (float(costs[i]), float(angle), int(fine_cand[i][0]), int(fine_cand[i][1]))
+        inner_y = best[2] in (cy_ - r, cy_ + r) and y_lo < best[2] < y_hi
+        inner_x = best[3] in (cx_ - r, cx_ + r) and x_lo < best[3] < x_hi
+        if not (inner_y or inner_x):
+            break
+    cost, angle, my, mx = best
+    return my, mx, angle, cost
+
+
+def match_correlation(left: Prepared, right: Prepared, region: FeatureRegion, right_point, angle: float,
+                      params: MosaicParams | None = None) -> float:
+    """Normalised correlation of the median-filtered feature area (rotated by angle) and the
+    same area around right_point in the right image: the check that a match is real."""
+    p = params or MosaicParams()
+    _, box = cross_blocks(region.width, p)
+    a = _sample_box(left.smoothed, region.centre, box, angle)
+    b = _sample_box(right.smoothed, right_point, box, 0.0)
+    return _ncc(a, b)
+
+
+def register_pair(left, right, params: MosaicParams | None = None, backend="numpy",
+                  names=("left", "right")) -> PairMatch:
+    """Find where `right` sits against `left` (arrays, gray or colour), the right image
+    overlapping the right part of the left one. Raises MosaicError when it cannot."""
+    p = params or MosaicParams()
+    t0 = time.perf_counter()
+    timings = {}
+    pl = left if isinstance(left, Prepared) else prepare_image(left, p)
+    pr = right if isinstance(right, Prepared) else prepare_image(right, p)
+    timings["preprocess"] = time.perf_counter() - t0
+    t = time.perf_counter()
+    regions = find_feature_regions(pl, p, backend, names[0], 1 + p.retries)
+    timings["feature_region"] = time.perf_counter() - t
+    t = time.perf_counter()
+    tried = []
+    for region in regions:
+        my, mx, angle, cost = match_entropy(pl, pr, region, p, backend, names)
+        corr = match_correlation(pl, pr, region, (my, mx), angle, p)
+        tried.append(corr)
+        if corr >= p.min_correlation:
+            break
+    timings["match"] = time.perf_counter() - t
+    if corr < p.min_correlation:
+        raise MosaicError(f"{names[0]} and {names[1]}: no overlap found (the best match of each of {len(tried)} "
+                          f"feature regions correlates at most {max(tried):.2f} < {p.min_correlation}; the overlap "
+                          f"must be at least {p.min_overlap:.0%} of the width)")
+    left_point = np.array(region.centre, np.float64)
+    right_point = np.array([my, mx], np.float64)
+    timings["total"] = time.perf_counter() - t0
+    return PairMatch(left_point, right_point, angle, left_point - right_point, region.width, cost, corr,
+                     region.centres,
+                     region.fcm.iterations, timings)
+
+
+# --- stitching -------------------------------------------------------------------
+
+def _rot(angle_deg: float) -> np.ndarray:
+    """R(angle) acting on (row, col) vectors, as used by _sample_box."""
+    a = np.deg2rad(angle_deg)
+    return np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])
+
+
+def composite(images: list, transforms: list) -> tuple[np.ndarray, np.ndarray]:
+    """Blend images placed by (A, t) (image pixel p lands at A p + t, (row, col)) into one
+    canvas, each weighted by its distance to its own border (feathering over the overlaps).
+    Returns the canvas (dtype of the inputs) and the canvas position of each image origin."""
+    colour = any(np.asarray(im).ndim == 3 for im in images)
+    arrs = []
+    for im in images:
+        a = np.asarray(im)
+        if a.ndim == 3 and a.shape[2] == 4:
+            a = a[..., :3]
+        if colour and a.ndim == 2:
+            a = np.repeat(a[..., None], 3, 2)
+        arrs.append(a)
+    dtype = arrs[0].dtype
+    corners = []
+    for a, (m, t) in zip(arrs, transforms):
+        h, w = a.shape[:2]
+        c = np.array([[0, 0], [0, w - 1], [h - 1, 0], [h - 1, w - 1]], np.float64)
+        corners.append(c @ m.T + t)
+    allc = np.concatenate(corners)
+    lo = np.floor(allc.min(0))
+    size = (np.ceil(allc.max(0)) - lo + 1).astype(int)
+    shape = (size[0], size[1]) + ((3,) if colour else ())
+    acc = np.zeros(shape)
+    wsum = np.zeros(tuple(size))
+    for a, (m, t), c in zip(arrs, transforms, corners):
+        h, w = a.shape[:2]
+        t = t - lo
+        y0, x0 = np.floor(c.min(0) - lo).astype(int)
+        y1, x1 = np.ceil(c.max(0) - lo).astype(int) + 1
+        yy, xx = np.mgrid[y0:y1, x0:x1].astype(np.float64)
+        inv = np.linalg.inv(m)
+        sy = inv[0, 0] * (yy - t[0]) + inv[0, 1] * (xx - t[1])
+        sx = inv[1, 0] * (yy - t[0]) + inv[1, 1] * (xx - t[1])
+        weight = np.minimum.reduce([sy + 0.5, h - 0.5 - sy, sx + 0.5, w - 0.5 - sx])
+        weight = np.clip(weight, 0.0, None)
+        chans = [a] if a.ndim == 2 else [a[..., k] for k in range(a.shape[2])]
+        vals = [ndimage.map_coordinates(ch.astype(np.float64), [sy, sx], order=1, mode="nearest") for ch in chans]
+        v = vals[0] if a.ndim == 2 else np.stack(vals, -1)
+        wv = weight if a.ndim == 2 else weight[..., None]
+        acc[y0:y1, x0:x1] += wv * v
+        wsum[y0:y1, x0:x1] += weight
+    out = acc / np.maximum(wsum if not colour else wsum[..., None], 1e-12)
+    if np.issubdtype(dtype, np.integer):
+        info = np.iinfo(dtype)
+        out = np.clip(np.rint(out), info.min, info.max).astype(dtype)
+    origins = np.array([t - lo for _, t in transforms])
+    return out, origins
+
+
+def stitch(images, backend="auto", params: MosaicParams | None = None, vertical: bool = False,
+           progress: bool = False) -> Mosaic:
+    """Stitch a left-to-right sequence of overlapping photographs (arrays or paths);
+    `vertical=True` for a top-to-bottom one. Each image is placed against the one before it."""
+    from .backends import resolve
+    be = resolve(backend)
+    p = params or MosaicParams()
+    names, arrays = [], []
+    for i, im in enumerate(images):
+        if isinstance(im, (str, Path)):
+            names.append(str(im))
+            arrays.append(load_image(im))
+        else:
+            names.append(f"image {i}")
+            arrays.append(np.asarray(im))
+    if len(arrays) < 2:
+        raise MosaicError("a mosaic needs at least two images")
+    for n, a in zip(names, arrays):
+        if a.ndim not in (2, 3) or min(a.shape[:2]) < 1:
+            raise MosaicError(f"{n}: not an image (array of shape {a.shape})")
+    work = [np.swapaxes(a, 0, 1) if vertical else a for a in arrays]
+    pairs = range(len(work) - 1)
+    if progress:
+        from tqdm import tqdm
+        pairs = tqdm(pairs, desc="mosaic", unit="pair", leave=False)
+    prepared = [prepare_image(a, p) for a in work]
+    matches = []
+    m, t = np.eye(2), np.zeros(2)
+    transforms = [(m, t)]
+    for i in pairs:
+        pm = register_pair(prepared[i], prepared[i + 1], p, be, names=(names[i], names[i + 1]))
+        matches.append(pm)
+        r = _rot(pm.angle)
+        # right pixel q -> left frame: left_point + R (q - right_point) -> mosaic: m(.) + t
+        t = m @ (pm.left_point - r @ pm.right_point) + t
+        m = m @ r
+        transforms.append((m, t))
+    canvas, origins = composite(work, transforms)
+    angles = np.array([np.rad2deg(np.arctan2(mm[0, 1], mm[0, 0])) for mm, _ in transforms])
+    if vertical:
+        canvas = np.swapaxes(canvas, 0, 1)
+        origins = origins[:, ::-1]
+        angles = -angles
+    return Mosaic(origins, canvas, angles, matches)
+
+
+# --- files and command line --------------------------------------------------------
+
+def load_image(path) -> np.ndarray:
+    """An image file as uint8/uint16 gray or RGB; faults become MosaicError naming the file."""
+    from PIL import Image, UnidentifiedImageError
+    path = Path(path)
+    if not path.exists():
+        raise MosaicError(f"{path}: no such file")
+    if path.is_dir():
+        raise MosaicError(f"{path}: is a directory, not an image")
+    try:
+        with Image.open(path) as im:
+            im.load()
+            if im.mode in ("I;16", "I;16B", "I;16L"):
+                arr = np.asarray(im, np.uint16)
+            elif im.mode in ("L", "RGB"):
+                arr = np.asarray(im)
+            elif im.mode in ("1", "LA", "I", "F"):
+                arr = np.asarray(im.convert("L"))
+            else:
+                arr = np.asarray(im.convert("RGB"))
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
+        raise MosaicError(f"{path}: cannot read as an image ({exc})") from None
+    if min(arr.shape[:2]) < 1:
+        raise MosaicError(f"{path}: empty image")
+    return arr
+
+
+_FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF", ".bmp": "BMP",
+            ".webp": "WEBP"}
+
+
+def save_image(path, image: np.ndarray) -> None:
+    """Write an image atomically; the format comes from the suffix."""
+    import io as _io
+    from PIL import Image
+    from .io import atomic_write_bytes
+    path = Path(path)
+    fmt = _FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        raise MosaicError(f"{path}: unknown image suffix; use one of {', '.join(sorted(_FORMATS))}")
+    arr = np.asarray(image)
+    if fmt != "PNG" and arr.dtype == np.uint16:
+        arr = (arr // 257).astype(np.uint8)
+    buf = _io.BytesIO()
+    Image.fromarray(arr).save(buf, format=fmt)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def cli_add_arguments(parser) -> None:
+    parser.add_argument("images", nargs="+", metavar="IMAGE",
+                        help="overlapping photographs in order, left to right (LEFT RIGHT [MORE ...])")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT.png", help="the stitched image")
+    parser.add_argument("--backend", default="auto", help="numpy, warp-cpu, warp-cuda[:N], opencl[:PLATFORM] or auto")
+    parser.add_argument("--vertical", action="store_true", help="the images run top to bottom")
+    parser.add_argument("--min-overlap", type=float, default=MosaicParams.min_overlap,
+                        help="smallest overlap as a fraction of the image width (default %(default)s)")
+
+
+def cli_main(args) -> int:
+    from .cli import CliError
+    from .io import ensure_not_input
+    if len(args.images) < 2:
+        raise CliError("give at least two images (LEFT RIGHT [MORE ...])")
+    if not 0.05 <= args.min_overlap <= 0.95:
+        raise CliError(f"--min-overlap must be between 0.05 and 0.95, got {args.min_overlap}")
+    out = Path(args.output)
+    if out.suffix.lower() not in _FORMATS:
+        raise CliError(f"{out}: unknown image suffix; use one of {', '.join(sorted(_FORMATS))}")
+    ensure_not_input(out, args.images)
+    try:
+        from .backends import BackendError, resolve
+        backend = resolve(args.backend)
+    except BackendError as exc:
+        raise CliError(str(exc)) from None
+    params = replace(MosaicParams(), min_overlap=args.min_overlap)
+    result = stitch([Path(x) for x in args.images], backend=backend, params=params, vertical=args.vertical,
+                    progress=True)
+    save_image(out, result.image)
+    for name, (row, col), angle in zip(args.images, result.offsets, result.angles):
+        print(f"{name}: origin at row {row:.1f}, col {col:.1f}, rotated {angle:+.2f} deg")
+    print(f"wrote {out} ({result.image.shape[1]}x{result.image.shape[0]} px, backend {backend.name})")
+    return 0

@@ -1,0 +1,233 @@
+"""Tests of the image mosaic (issue 8, paper sections 3.3 to 3.4): each equation on
+hand-computed values, the kernels on every backend against the float64 reference,
+and registration accuracy on pairs cut from a scikit-image sample photograph."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from relicgpu import mosaic as M
+
+# --- Eq. 1-3: local normalisation ----------------------------------------------------
+
+
+def test_eq1_above_the_local_mean():
+    # 3x3 window over the whole image: M_i = 1, VAR_i = 81/9 - 1 = 8, I - M_i = 8
+    img = np.zeros((3, 3))
+    img[1, 1] = 9.0
+    g = M.local_normalise(img, window=3, mean0=100.0, var0=32.0, var_floor=0.0)
+    assert g[1, 1] == pytest.approx(100.0 + np.sqrt(32.0 * 64.0 / 8.0))  # 116
+
+
+def test_eq1_below_the_local_mean():
+    # M_i = 8, VAR_i = 72 - 64 = 8, I - M_i = -8: the "Others" branch
+    img = np.full((3, 3), 9.0)
+    img[1, 1] = 0.0
+    g = M.local_normalise(img, window=3, mean0=100.0, var0=32.0, var_floor=0.0)
+    assert g[1, 1] == pytest.approx(100.0 - 16.0)
+
+
+def test_eq2_eq3_weights():
+    # M_i^d = 100 + 0.5 (1 - 100) = 50.5; VAR_i^d = 32 + 0.5 (8 - 32) = 20
+    img = np.zeros((3, 3))
+    img[1, 1] = 9.0
+    g = M.local_normalise(img, window=3, mean0=100.0, var0=32.0, alpha1=0.5, alpha2=0.5, var_floor=0.0)
+    assert g[1, 1] == pytest.approx(50.5 + np.sqrt(20.0 * 64.0 / 8.0))
+
+
+def test_normalisation_removes_a_gray_level_change():
+    rng = np.random.default_rng(0)
+    img = ndimage.gaussian_filter(rng.random((40, 50)) * 255, 2)
+    a = M.local_normalise(img, window=9, var_floor=1e-6)
+    b = M.local_normalise(0.7 * img + 30.0, window=9, var_floor=1e-6)
+    np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+# --- Eq. 4: local edge density -------------------------------------------------------
+
+
+def test_eq4_single_edge_pixel():
+    e = np.zeros((5, 5))
+    e[2, 2] = 1
+    d = M.led(e, 1, "numpy")
+    expected = np.zeros((5, 5))
+    expected[1:4, 1:4] = 1.0 / 9.0
+    np.testing.assert_allclose(d, expected)
+
+
+def test_eq4_border_counts_outside_as_zero():
+    d = M.led(np.ones((4, 6)), 1, "numpy")
+    assert d[0, 0] == pytest.approx(4 / 9)
+    assert d[0, 2] == pytest.approx(6 / 9)
+    assert d[1, 2] == pytest.approx(1.0)
+
+
+def test_eq4_matches_a_direct_sum():
+    rng = np.random.default_rng(1)
+    e = (rng.random((23, 31)) < 0.3).astype(float)
+    a = 3
+    padded = np.pad(e, a)
+    direct = np.array([[padded[i:i + 2 * a + 1, j:j + 2 * a + 1].sum() for j in range(31)] for i in range(23)])
+    np.testing.assert_allclose(M.led(e, a, "numpy"), direct / (2 * a + 1) ** 2, atol=1e-12)
+
+
+# --- Eq. 5-6: fuzzy C-means ----------------------------------------------------------
+
+
+def test_eq5_memberships_by_hand():
+    # b = 2: U_k = d_k^-2 / sum_m d_m^-2 with d = (2, 1, 2)
+    u = M.fcm_memberships(np.array([2.0]), np.array([0.0, 1.0, 4.0]), 2.0)
+    np.testing.assert_allclose(u[0], [1 / 6, 2 / 3, 1 / 6])
+    # b = 3: exponent 2/(b-1) = 1, U_k = d_k^-1 / sum: (1/2, 1, 1/2) / 2
+    u = M.fcm_memberships(np.array([2.0]), np.array([0.0, 1.0, 4.0]), 3.0)
+    np.testing.assert_allclose(u[0], [0.25, 0.5, 0.25])
+    # a value on a centre belongs to it alone
+    np.testing.assert_allclose(M.fcm_memberships(np.array([1.0]), np.array([0.0, 1.0, 4.0]), 2.0)[0], [0, 1, 0])
+
+
+def _fcm_direct(values, b, iterations):
+    """Eq. 5-6 written point by point in float64, centres started at max, mean, min."""
+    v = [float(x) for x in np.ravel(values)]
+    c = [max(v), sum(v) / len(v), min(v)]
+    for _ in range(iterations):
+        u = []
+        for x in v:
+            d = [abs(x - ck) for ck in c]
+            if 0.0 in d:
+                hits = [1.0 if dk == 0 else 0.0 for dk in d]
+                u.append([h / sum(hits) for h in hits])
+            else:
+                inv = [(1.0 / dk) ** (2.0 / (b - 1.0)) for dk in d]
+                u.append([ik / sum(inv) for ik in inv])
+        c = [sum(u[i][k] ** b * v[i] for i in range(len(v))) / sum(u[i][k] ** b for i in range(len(v)))
+             for k in range(3)]
+    return np.array(c), np.array(u)
+
+
+def test_eq6_one_step_against_direct():
+    values = np.array([[0.0, 0.1, 0.1], [0.5, 0.52, 0.9], [1.0, 0.95, 0.2]])
+    res = M.fuzzy_cmeans(values, b=2.0, tol=0.0, max_iter=1)
+    direct, _ = _fcm_direct(values, 2.0, 1)
+    np.testing.assert_allclose(res.centres, direct, rtol=1e-12)
+
+
+@pytest.mark.parametrize("b", [1.5, 2.0, 3.0])
+def test_fcm_converged_against_direct(b):
+    rng = np.random.default_rng(2)
+    values = np.round(rng.random((6, 7)) ** 2, 2)  # repeated values, as LED has
+    res = M.fuzzy_cmeans(values, b=b, tol=1e-12, max_iter=2000)
+    assert res.converged
+    direct, u = _fcm_direct(values, b, res.iterations)
+    np.testing.assert_allclose(res.centres, direct, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(res.labels, u.argmax(1))
+    # step 4: the centres no longer move
+    again = M.fuzzy_cmeans(values, b=b, tol=1e-12, max_iter=res.iterations + 1)
+    np.testing.assert_allclose(again.centres, res.centres, atol=1e-10)
+    assert res.centres[0] > res.centres[1] > res.centres[2]
+
+
+def test_fcm_rejects_bad_input():
+    with pytest.raises(ValueError):
+        M.fuzzy_cmeans(np.array([]))
+    with pytest.raises(ValueError):
+        M.fuzzy_cmeans(np.array([1.0, 2.0]), b=1.0)
+
+
+# --- Eq. 7 and Eq. 8 ---------------------------------------------------------------------
+
+
+def test_eq7_template_width():
+    assert M.template_width(64, 0.25, 0.5) == pytest.approx(128.0)
+    assert M.template_width(64, 0.6, 0.5) == 64.0  # not below C: unchanged
+    assert M.template_width(64, 0.0, 0.5) == 64.0  # no edges at all: nothing to scale by
+
+
+def test_eq8_by_hand():
+    assert M.quadratic_entropy(np.array([0, 0, 0, 0]), 2) == pytest.approx(0.0)
+    assert M.quadratic_entropy(np.array([0, 0, 1, 1]), 2) == pytest.approx(0.5)
+    assert M.quadratic_entropy(np.array([0, 1, 2, 3]), 4) == pytest.approx(0.75)
+    assert M.quadratic_entropy(np.array([0, 0, 0, 3]), 4) == pytest.approx(1 - (0.75 ** 2 + 0.25 ** 2))
+
+
+def test_block_entropy_map_matches_per_block():
+    rng = np.random.default_rng(3)
+    q = rng.integers(0, 8, (17, 21))
+    h = M.block_entropy(q, 5, 8, "numpy")
+    assert h.shape == (13, 17)
+    for y, x in [(0, 0), (4, 9), (12, 16)]:
+        assert h[y, x] == pytest.approx(M.quadratic_entropy(q[y:y + 5, x:x + 5], 8))
+
+
+def test_soft_levels_split_between_bins():
+    # a level of 1.25 counts 0.75 in bin 1 and 0.25 in bin 2
+    q = np.array([[1.25, 1.0], [2.0, 0.0]])
+    p = np.array([1.0, 1.75, 1.25]) / 4
+    assert M.block_entropy(q, 2, 3, "numpy")[0, 0] == pytest.approx(1 - (p ** 2).sum())
+    assert M.quadratic_entropy(q, 3) == pytest.approx(1 - (p ** 2).sum())
+
+
+# --- sequential detection -----------------------------------------------------------------
+
+
+def test_sequential_costs_exact_by_default_and_stops_at_a_threshold():
+    rng = np.random.default_rng(4)
+    hmap = rng.random((40, 40))
+    offsets = np.array([[0, 0], [0, 4], [4, 0], [4, 4], [2, 2], [6, 1]])
+    cand = np.stack(np.meshgrid(np.arange(30), np.arange(30), indexing="ij"), -1).reshape(-1, 2)
+    tmpl = hmap[12 + offsets[:, 0], 7 + offsets[:, 1]] + rng.normal(0, 0.01, len(offsets))
+    full = np.array([np.abs(tmpl - hmap[y + offsets[:, 0], x + offsets[:, 1]]).sum() for y, x in cand])
+    pruned = M.sequential_costs(tmpl, offsets, hmap, cand)
+    assert np.argmin(pruned) == np.argmin(full)
+    assert tuple(cand[np.argmin(pruned)]) == (12, 7)
+    kept = np.isfinite(pruned)
+    np.testing.assert_allclose(pruned[kept], full[kept])
+    assert kept.sum() < len(cand) // 2  # most candidates stopped early
+    fixed = M.sequential_costs(tmpl, offsets, hmap, cand, thre=1.0)
+    np.testing.assert_array_equal(np.isfinite(fixed), full <= 1.0)
+
+
+# --- kernels on every backend ---------------------------------------------------------------
+
+
+def _kernel_backends():
+    from relicgpu.backends import available_backends
+    return [n for n in available_backends() if n != "numpy"]
+
+
+KERNEL_BACKENDS = _kernel_backends()
+
+
+@pytest.mark.parametrize("backend", KERNEL_BACKENDS)
+@pytest.mark.parametrize("half", [0, 1, 4, 9])
+def test_led_kernel_against_numpy(backend, half):
+    rng = np.random.default_rng(half)
+    e = (rng.random((37, 53)) < 0.35).astype(np.float32)
+    out = M.led(e, half, backend)
+    assert out.shape == e.shape
+    np.testing.assert_allclose(out, M.led(e, half, "numpy"), atol=1e-6)
+    # a real-valued image too (the feature score box-filters D)
+    d = rng.random((12, 9)).astype(np.float32)
+    np.testing.assert_allclose(M.led(d, half, backend), M.led(d, half, "numpy"), atol=1e-5)
+
+
+@pytest.mark.parametrize("backend", KERNEL_BACKENDS)
+@pytest.mark.parametrize("block,levels", [(1, 2), (4, 8), (6, 16), (8, 64)])
+def test_block_entropy_kernel_against_numpy(backend, block, levels):
+    rng = np.random.default_rng(block)
+    hard = rng.integers(0, levels, (31, 45)).astype(np.float64)
+    soft = rng.random((31, 45)) * (levels - 1)
+    soft[0, :5] = levels - 1  # the top level exactly
+    for q in (hard, soft):
+        out = M.block_entropy(q, block, levels, backend)
+        assert out.shape == (31 - block + 1, 45 - block + 1)
+        np.testing.assert_allclose(out, M.block_entropy(q, block, levels, "numpy"), atol=2e-6)
+
+
+def test_block_entropy_rejects_bad_levels():
+    with pytest.raises(ValueError):
+        M.block_entropy(np.full((4, 4), 8.0), 2, 8)
+    with pytest.raises(ValueError):
+        M.block_entropy(np.zeros((4, 4)), 2, 65)
+    with pytest.raises(ValueError):
+        M.block_entropy(np.zeros((3, 4)), 4, 8)
