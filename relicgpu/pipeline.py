@@ -14,7 +14,7 @@ from . import contour as contour_mod
 from . import features as features_mod
 from . import fusion as fusion_mod
 from .backends import resolve
-from .icp import IcpResult, batched_icp, facing_poses, icp, ransac_poses, refine_point_to_plane
+from .icp import batched_icp, facing_poses, icp, ransac_poses, refine_point_to_plane
 from .io import Fragment
 from .params import Params
 from .segment import segment
@@ -231,19 +231,24 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     timings["coarse"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    best = None
-    for count, pose, ca, cb, pairs in candidates:
+    fits = []
+    for share, pose, ca, cb, pairs in candidates:
         fit = icp(pb.sample.fracture, pa.sample.fracture, pose, be, params.icp_iterations,
                   params.icp_tolerance * scale, params.icp_reject * scale, params.contact_distance * scale)
         polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
                                          fit.transform, be, params.plane_iterations, params.contact_distance * scale)
-        fit = IcpResult(polished, fit.mean_distance, fit.iterations)
-        ver = verify(pa.sample, pb.sample, fit.transform, be, params.contact_distance * scale,
+        fits.append((fit.mean_distance, polished, ca, cb, pairs))
+    # verify the tightest fits first; stop at the first accepted
+    best = None
+    for _, transform, ca, cb, pairs in sorted(fits, key=lambda f: f[0])[: params.verify_at_most]:
+        ver = verify(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
                      params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
                      params.max_penetration)
         rank = (ver.accepted, ver.overlap - ver.penetration)
         if best is None or rank > best[0]:
-            best = (rank, fit, ver, ca, cb, pairs)
+            best = (rank, transform, ver, ca, cb, pairs)
+        if ver.accepted:
+            break
     timings["icp+verify"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t_start
 
@@ -251,7 +256,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
         reason = "no fracture contours" if not (pa.contours and pb.contours) else "no consistent LCS correspondences"
         return PairMatch(np.eye(4), False, 0.0, float("inf"), 0.0, 0.0, np.zeros((0, 2), np.int64), -1, -1,
                          reason, timings)
-    _, fit, ver, ca, cb, pairs = best
+    _, transform, ver, ca, cb, pairs = best
     score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
-    return PairMatch(fit.transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
+    return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
                      pairs, ca, cb, ver.reason, timings)

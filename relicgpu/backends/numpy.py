@@ -165,7 +165,7 @@ def nearest_neighbors(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarra
         raise ValueError("nearest_neighbors: the target point set is empty")
     if len(src) == 0:
         return np.zeros(0, np.int32), np.zeros(0)
-    dist, idx = cKDTree(dst).query(src, k=1)
+    dist, idx = cKDTree(dst).query(src, k=1, workers=-1)
     return idx.astype(np.int32), dist
 
 

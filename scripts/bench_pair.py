@@ -1,0 +1,82 @@
+#!/usr/bin/env python
+"""Time each stage of match_pair for pairs of the sizes in the paper's Table 1.
+
+    python scripts/bench_pair.py [--backend numpy] [--repeats 3] [--json out.json]
+
+Pairs come from relicgpu.synth (2-piece vases, tiles and torsos) with `faces` chosen
+so that the two fragments have about the paper's vertex counts. Prints the median
+time per stage (ms) over the repeats and the paper's total beside ours.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+
+import numpy as np
+
+PAPER = [(8046, 10314, 1342), (5142, 4408, 892), (7250, 5692, 1311), (15064, 20956, 1890), (12476, 10346, 1420)]
+SHAPES = ["vase", "slab", "torso", "vase", "slab"]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--backend", default="numpy")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--json", default=None, help="write the results here")
+    args = ap.parse_args(argv)
+
+    from relicgpu import synth
+    from relicgpu.backends import resolve
+    from relicgpu.icp import rotation_angle_deg
+    from relicgpu.params import Params
+    from relicgpu.pipeline import match_pair, pair_scale, prepare
+
+    backend = resolve(args.backend)
+    params = Params()
+    rows = []
+    for (va, vb, paper_ms), shape in zip(PAPER, SHAPES):
+        r = synth.generate(shape, pieces=2, seed=7, faces=va + vb, noise=0.0005)
+        a, b = r.fragments
+        truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
+        scale = pair_scale(a, b, params)
+        match_pair(a, b, params, backend, scale=scale)  # warm-up: kernel compiles, caches
+        stages: dict[str, list[float]] = {}
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            pa = prepare(a, params, backend, scale=scale)
+            pb = prepare(b, params, backend, scale=scale)
+            t1 = time.perf_counter()
+            m = match_pair(pa, pb, params, backend, scale=scale)
+            t2 = time.perf_counter()
+            for k in pa.timings:
+                stages.setdefault(k, []).append(pa.timings[k] + pb.timings[k])
+            for k in ("coarse", "icp+verify"):
+                stages.setdefault(k, []).append(m.timings[k])
+            stages.setdefault("total", []).append((t1 - t0) + (t2 - t1))
+        rot = rotation_angle_deg(m.transform[:3, :3] @ truth[:3, :3].T)
+        row = {"shape": shape, "vertices": [len(a.vertices), len(b.vertices)], "paper_vertices": [va, vb],
+               "paper_ms": paper_ms, "accepted": bool(m.accepted), "rotation_error_deg": rot,
+               "ms": {k: 1000 * statistics.median(v) for k, v in stages.items()}}
+        rows.append(row)
+        print(f"  {shape} {row['vertices']}: {row['ms']['total']:.0f} ms", file=sys.stderr)
+
+    names = list(rows[0]["ms"])
+    print(f"\nmatch_pair stages, backend {backend.name}, median of {args.repeats} (ms)\n")
+    head = f"| vertices (ours) | paper vertices | " + " | ".join(names) + " | paper total | matched | rot err |"
+    print(head)
+    print("|" + "---|" * (len(names) + 5))
+    for r in rows:
+        cells = " | ".join(f"{r['ms'][k]:.0f}" for k in names)
+        print(f"| {r['vertices'][0]}/{r['vertices'][1]} | {r['paper_vertices'][0]}/{r['paper_vertices'][1]} | {cells} | "
+              f"{r['paper_ms']} | {'yes' if r['accepted'] else 'no'} | {r['rotation_error_deg']:.2f} |")
+    if args.json:
+        from relicgpu.io import atomic_write_json
+        atomic_write_json(args.json, {"backend": backend.name, "repeats": args.repeats, "rows": rows})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
