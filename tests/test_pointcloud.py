@@ -295,7 +295,7 @@ def test_sphere_gives_a_closed_outward_single_body_within_one_percent():
 
 def test_box_gives_a_closed_single_body_within_one_percent():
     box = trimesh.creation.box((1.0, 0.7, 0.4))
-    res = pc.triangulate(surface_points(box, 40000, noise=0.001))
+    res = pc.triangulate(surface_points(box, 25000, noise=0.001))
     vol = assert_closed_outward_one_body(res.vertices, res.faces)
     assert abs(vol / box.volume - 1) < 0.02
     mesh = trimesh.Trimesh(res.vertices, res.faces, process=False)
