@@ -818,7 +818,12 @@ def _median_spacing(q: np.ndarray) -> float:
 
 def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: float = ALPHA_FACTOR,
                 progress: bool = False, label: str = "points", debug: bool = False) -> MeshResult:
-    """Mesh a point cloud sampled from the surface of one solid into a closed, outward-wound triangle mesh."""
+    """Mesh a point cloud sampled from the surface of one solid into a closed, outward-wound triangle mesh.
+
+    max_points: thin larger clouds on a voxel grid first (None: never).
+    alpha_factor: the first alpha, in median point spacings (it grows while the flood leaks).
+    debug: print the figures of each alpha tried to stderr.
+    """
     from tqdm import tqdm
 
     pts = np.asarray(points, np.float64)
@@ -900,10 +905,12 @@ def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: fl
 
     t0 = time.perf_counter()
     inside, _, _ = _largest_body(tets, _smooth_labels(tets, inside, alpha))
-    inside, peeled = _peel(tets, inside, PEEL_DEPTH * spacing)
+    inside, _ = _peel(tets, inside, PEEL_DEPTH * spacing)
     timings["peel"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     surface = _surface(tets, inside)
+    if len(surface.faces) == 0:
+        raise FragmentError(f"{label}: no closed surface found (is this the scan of one solid?)")
     faces, source = surface.faces, surface.source
     comp_sizes = np.bincount(surface.component)
     if len(comp_sizes) > 1:
