@@ -44,7 +44,6 @@ import numpy as np
 
 from .io import Fragment, FragmentError, fragment_from_arrays
 
-POINT_SUFFIXES = (".xyz", ".asc", ".txt", ".pcd", ".npy", ".ply")
 MIN_POINTS = 20
 # Qhull takes about 6 s per 200k surface points on the project's CPU: 400k
 # points keep one Delaunay near 15 s and the whole meshing of a 1M-point scan

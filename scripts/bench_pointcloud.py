@@ -18,7 +18,6 @@ or a unit sphere with --source sphere (no other stage needed).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import sys
