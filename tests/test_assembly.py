@@ -1,5 +1,6 @@
 """Assembly (issue 5): batched screening, the spanning forest, joint refinement, outputs,
 the part-accuracy metric, and resuming a killed CLI run from its cache."""
+import dataclasses
 import json
 import os
 import signal
@@ -14,7 +15,7 @@ import pytest
 import trimesh
 
 from relicgpu import synth
-from relicgpu.assembly import (Edge, _finish_groups, _inv, assemble, closed_solid, grow_forest,
+from relicgpu.assembly import (CLASH_THICKNESS, Edge, _finish_groups, _inv, assemble, closed_solid, grow_forest,
                                lcs_lengths_bitparallel, overlap_volume, penetration, refine_poses, screen,
                                select_candidates)
 from relicgpu.backends import numpy as ref
@@ -42,9 +43,14 @@ def synth_dir(tmp_path_factory, broken):
 
 
 @pytest.fixture(scope="module")
-def local_result(synth_dir):
+def shared_cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
+def local_result(synth_dir, shared_cache):
     frags = load_directory(synth_dir / "fragments")
-    return assemble(frags, backend="numpy", progress=False), frags
+    return assemble(frags, backend="numpy", progress=False, cache_dir=shared_cache), frags
 
 
 def truth_samples(result, n_points=1500):
@@ -61,7 +67,9 @@ def truth_samples(result, n_points=1500):
         sv = np.arange(len(frag.vertices))
         if len(sv) > 2 * n_points:
             sv = np.sort(rng.choice(sv, 2 * n_points, replace=False))
-        out.append(SurfaceSample(frag.vertices[fv], frag.vertices[sv], vn[sv]))
+        known = {"fracture": frag.vertices[fv], "fracture_region": np.zeros(len(fv), np.int64),
+                 "fracture_normals": vn[fv], "surface": frag.vertices[sv], "normals": vn[sv]}
+        out.append(SurfaceSample(**{f.name: known[f.name] for f in dataclasses.fields(SurfaceSample)}))
     return out
 
 
@@ -146,7 +154,8 @@ def test_true_neighbours_do_not_count_as_interpenetrating(broken):
         for j in range(i + 1, n):
             rel = _inv(broken.poses[i]) @ broken.poses[j]
             assert penetration(samples[i], samples[j], rel, ref, depth) <= Params().max_penetration
-            assert overlap_volume(solids[i], solids[j], rel) < 0.005
+            share, thickness = overlap_volume(solids[i], solids[j], rel)
+            assert thickness < 0.5 * CLASH_THICKNESS * scale_of(broken.fragments)
 
 
 def test_forest_refuses_interpenetration_and_a_disagreeing_loop(broken):
@@ -162,7 +171,8 @@ def test_forest_refuses_interpenetration_and_a_disagreeing_loop(broken):
     push = np.eye(4)
     push[:3, 3] = samples[i].surface.mean(axis=0) - (true_rel[:3, :3] @ samples[j].surface.mean(axis=0) + true_rel[:3, 3])
     clash = Edge(i, j, push @ true_rel, 0.99)
-    assert overlap_volume(solids[i], solids[j], clash.transform) > 0.05
+    share, thickness = overlap_volume(solids[i], solids[j], clash.transform)
+    assert share > 0.05 and thickness > 2 * CLASH_THICKNESS * scale
     # a match that closes a loop the wrong way: a true pair, turned 20 degrees, scored lowest
     a, b = broken.touching[-1]
     rel = _inv(broken.poses[a]) @ broken.poses[b]
@@ -272,16 +282,20 @@ def _run_cli(src, out, *extra, quiet=True):
     return cmd
 
 
-def test_cli_writes_outputs_and_leaves_inputs_alone(tmp_path, synth_dir, local_result):
+def test_cli_writes_outputs_and_leaves_inputs_alone(tmp_path, synth_dir, local_result, shared_cache):
     src = synth_dir / "fragments"
     before = {p.name: p.read_bytes() for p in src.iterdir()}
     out = tmp_path / "out"
-    proc = subprocess.run(_run_cli(src, out, quiet=False), capture_output=True, text=True, timeout=300)
+    # the API run above filled the cache: the command line computes nothing again
+    proc = subprocess.run(_run_cli(src, out, "--cache-dir", str(shared_cache), quiet=False), capture_output=True,
+                          text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
+    result, frags = local_result
+    assert f"({len(result.candidates)} from cache)" in proc.stderr
     assert {p.name: p.read_bytes() for p in src.iterdir()} == before
     doc = json.loads((out / "assembly.json").read_text())
-    result, frags = local_result
     assert _without_timings(doc) == _without_timings(result.to_dict())
+    assert not (out / "cache").exists()
     scene = trimesh.load(out / "assembly.glb", force="scene")
     assert sorted(scene.graph.nodes_geometry) == sorted(f.name for f in frags)
     merged = trimesh.load(out / "merged.stl", force="mesh")
