@@ -1,0 +1,463 @@
+"""Training the feature-fusion MLP (section 3.8.2) with torch: `relicgpu train-fusion -o weights.npz`.
+
+The paper: "by adjusting the weights of the multilayer perceptron, the error rate of
+fragment splicing can be reduced". Here the weights are fitted on synthetic breaks
+(relicgpu.synth) whose true poses are known:
+
+- data: touching pairs (a, b) of synthetic objects, both prepared at the pair's scale
+  s (the mean fragment size); the points of b's contours are moved onto a by the true
+  relative pose, and a point of b corresponds to the nearest point of a's contours
+  when that lies within 1% of s;
+- loss: on corresponding points and on random points more than 3% of s apart, the
+  soft flags of Eq. 33 (|V_i - V_j| < Params().lcs_eps made smooth) give a true-flag
+  rate TPR and a false-flag rate FPR; the loss -log TPR + 0.5 log FPR pulls fused
+  values of corresponding points together and pushes the others apart (see pair_loss);
+- model selection by the splicing error itself on held-out pairs: checkpoints are
+  ranked by the share of LCS correspondences that are true (within 1% of s), the best
+  few then by pair success of match_pair started from the LCS alone (no patch starts).
+
+Only this module imports torch (lazily, inside the functions that train); the data and
+scoring helpers are plain NumPy and serve scripts/bench_fusion.py too. Inference is
+relicgpu.fusion (NumPy).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import pickle
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from . import fusion as fusion_mod
+from .features import dimensionless
+from .params import Params
+
+SHAPES = ("vase", "torso", "slab")
+TRUE_WITHIN = 0.01  # a correspondence is true within this share of the pair scale
+NEGATIVE_BEYOND = 0.03  # a negative (non-corresponding) pair lies at least this far apart
+CACHE_VERSION = 1
+
+
+# --- data ------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    shape: str
+    pieces: int
+    seed: int
+    noise: float
+
+
+@dataclass(eq=False)
+class PairData:
+    """One touching pair of a synthetic object, prepared at the pair scale."""
+    spec: ObjectSpec
+    i: int  # fragment a
+    j: int  # fragment b
+    scale: float
+    prepared_a: object  # relicgpu.pipeline.Prepared
+    prepared_b: object
+    truth: np.ndarray  # (4,4) carrying b's file coordinates onto a's
+    inputs_a: list  # per contour of a: (N,8) fusion inputs [g, f]
+    inputs_b: list
+    moved_b: list  # per contour of b: (N,3) points moved onto a by the truth
+    corr: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.int64))  # (K,4) [ca, ia, cb, ib]
+
+
+def object_specs(count: int, seed: int, shapes=SHAPES, pieces=(2, 3, 4), noises=(0.0, 0.0005, 0.001)) -> list[ObjectSpec]:
+    """`count` synthetic objects cycling through the shapes, pieces and noise levels; the
+    synth seeds start at `seed` (keep training, validation and benchmark ranges apart)."""
+    out = []
+    for k in range(count):  # every combination of shape, noise and pieces within the first few
+        out.append(ObjectSpec(shapes[k % len(shapes)], int(pieces[(k // (len(shapes) * len(noises))) % len(pieces)]),
+                              seed + k, float(noises[(k // len(shapes)) % len(noises)])))
+    return out
+
+
+def contour_inputs(contour, scale: float, params: Params) -> np.ndarray:
+    """The fusion inputs of a prepared contour (the same f the pipeline fuses)."""
+    f = dimensionless(contour.features, params.contour_step * scale * params.feature_stride)
+    return fusion_mod.fusion_inputs(f)
+
+
+def _move(t: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p @ t[:3, :3].T + t[:3, 3]
+
+
+def true_correspondences(points_a: list, moved_b: list, within: float) -> np.ndarray:
+    """(K,4) [ca, ia, cb, ib]: each point of b's contours (moved onto a) with the nearest
+    point of a's contours, when that is within `within`."""
+    from scipy.spatial import cKDTree
+
+    if not points_a or not moved_b:
+        return np.zeros((0, 4), np.int64)
+    pa = np.concatenate(points_a)
+    owner = np.concatenate([np.stack([np.full(len(p), c), np.arange(len(p))], 1) for c, p in enumerate(points_a)])
+    out = []
+    tree = cKDTree(pa)
+    for cb, q in enumerate(moved_b):
+        d, k = tree.query(q)
+        ok = np.flatnonzero(d <= within)
+        out.append(np.stack([owner[k[ok], 0], owner[k[ok], 1], np.full(len(ok), cb), ok], 1))
+    return np.concatenate(out).astype(np.int64) if out else np.zeros((0, 4), np.int64)
+
+
+def build_pairs(specs: list[ObjectSpec], params: Params | None = None, faces: int = 4000,
+                pairs_per_object: int = 2, progress: bool = True, cache_dir=None, desc: str = "pairs") -> list[PairData]:
+    """Generate the objects, prepare up to `pairs_per_object` touching pairs of each (numpy
+    backend) and find their true correspondences. Cached under `cache_dir` (default: the
+    system temp dir) by the specs and parameters, so a second run starts at once."""
+    from tqdm import tqdm
+
+    from . import synth
+    from .pipeline import prepare
+
+    params = params or Params()
+    key = json.dumps([CACHE_VERSION, [s.__dict__ for s in specs], faces, pairs_per_object,
+                      {k: v for k, v in params.to_dict().items() if k != "fusion_weights"}], sort_keys=True)
+    cache = Path(cache_dir or tempfile.gettempdir()) / "relicgpu-fusion-cache"
+    path = cache / (hashlib.sha256(key.encode()).hexdigest()[:24] + ".pkl")
+    if path.exists():
+        try:
+            with open(path, "rb") as fh:
+                return pickle.load(fh)
+        except Exception:  # a stale or broken cache file is made again
+            pass
+    plain = params.with_(fusion_weights=None)
+    out = []
+    for spec in tqdm(specs, desc=desc, disable=not progress, file=sys.stderr):
+        r = synth.generate(spec.shape, pieces=spec.pieces, seed=spec.seed, faces=faces, noise=spec.noise,
+                           progress=False)
+        # spread the chosen pairs over the object's touching list
+        chosen = r.touching[:: max(1, len(r.touching) // pairs_per_object)][:pairs_per_object]
+        for i, j in chosen:
+            a, b = r.fragments[i], r.fragments[j]
+            scale = 0.5 * (a.size + b.size)
+            pa = prepare(a, plain, "numpy", scale=scale)
+            pb = prepare(b, plain, "numpy", scale=scale)
+            truth = np.linalg.inv(r.poses[i]) @ r.poses[j]
+            moved = [_move(truth, c.points) for c in pb.contours]
+            corr = true_correspondences([c.points for c in pa.contours], moved, TRUE_WITHIN * scale)
+            out.append(PairData(spec, i, j, scale, pa, pb, truth,
+                                [contour_inputs(c, scale, plain) for c in pa.contours],
+                                [contour_inputs(c, scale, plain) for c in pb.contours], moved, corr))
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "wb") as fh:
+        pickle.dump(out, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    tmp.replace(path)
+    return out
+
+
+# --- scoring (NumPy) ---------------------------------------------------------
+
+@dataclass(frozen=True)
+class LcsScore:
+    true: int  # LCS correspondences within 1% of the pair scale of the truth
+    total: int
+
+    @property
+    def share(self) -> float:
+        return self.true / self.total if self.total else 0.0
+
+
+def lcs_score(pair: PairData, model, eps: float) -> LcsScore:
+    """Run the circular LCS of match_pair over every contour pair with `model`'s fused values
+    and count the correspondences that are true."""
+    from .backends import resolve
+    from .lcs import circular_lcs
+
+    be = resolve("numpy")
+    fa = [fusion_mod.forward(model, x) for x in pair.inputs_a]
+    fb = [fusion_mod.forward(model, x) for x in pair.inputs_b]
+    true = total = 0
+    for ca, A in enumerate(pair.prepared_a.contours):
+        for cb in range(len(pair.prepared_b.contours)):
+            for m in circular_lcs(fa[ca], fb[cb], eps, be):
+                if m.length < 3:
+                    continue
+                d = np.linalg.norm(A.points[m.pairs[:, 0]] - pair.moved_b[cb][m.pairs[:, 1]], axis=1)
+                true += int((d <= TRUE_WITHIN * pair.scale).sum())
+                total += len(d)
+    return LcsScore(true, total)
+
+
+def with_model(prepared, model, params: Params | None = None):
+    """The Prepared fragment with its contours' fused values made by `model` (what
+    prepare(fragment, Params(fusion_weights=...)) gives, without segmenting again)."""
+    params = params or Params()
+    contours = [replace(c, fused=fusion_mod.forward(model, contour_inputs(c, prepared.scale, params)))
+                for c in prepared.contours]
+    return replace(prepared, contours=contours)
+
+
+def pair_result(pair: PairData, model, params: Params | None = None) -> tuple[bool, float, object]:
+    """match_pair with `model`'s fused values: (correct, pose error, PairMatch). Correct = accepted
+    with b's vertices within 1% of the object size (synth objects have unit size) RMS of the truth."""
+    from .pipeline import match_pair
+
+    params = params or Params()
+    pa, pb = with_model(pair.prepared_a, model, params), with_model(pair.prepared_b, model, params)
+    m = match_pair(pa, pb, params, "numpy", scale=pair.scale)
+    v = pair.prepared_b.fragment.vertices
+    err = float(np.sqrt(np.mean(np.sum((_move(m.transform, v) - _move(pair.truth, v)) ** 2, axis=1))))
+    return bool(m.accepted and err <= 0.01), err, m
+
+
+# --- training (torch) ------------------------------------------------------
+
+@dataclass(frozen=True)
+class TrainConfig:
+    train_objects: int = 24
+    val_objects: int = 9
+    train_seed: int = 0  # synth seeds of the training objects start here
+    val_seed: int = 500  # ... and of the validation objects here
+    seed: int = 0  # torch initialisation and negative sampling
+    hidden: int = 16
+    layers: int = 2
+    steps: int = 400
+    lr: float = 3e-3
+    negatives: int = 4  # negatives per positive
+    fpr_exponent: float = 0.5  # weight of log(false-flag rate) against -log(true-flag rate)
+    temperature: float = 0.25  # of the soft flag, in units of eps
+    check_every: int = 50
+    finalists: int = 3  # checkpoints judged by pair success
+    faces: int = 4000
+    pairs_per_object: int = 2
+
+
+@dataclass
+class TrainResult:
+    model: fusion_mod.FusionModel
+    losses: list
+    checkpoints: list  # (step, val LCS share)
+    meta: dict
+
+
+def _standardisation(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    # median and scaled IQR: the curvature has a heavy tail (kinks), which a plain std lets rule
+    mean = np.median(x, axis=0)
+    q1, q3 = np.percentile(x, [25, 75], axis=0)
+    std = (q3 - q1) / 1.349
+    return mean, np.where(std > 1e-12, std, 1.0)
+
+
+def _torch_net(hidden: int, layers: int):
+    import torch
+
+    mods, width = [], 8
+    for _ in range(layers):
+        mods += [torch.nn.Linear(width, hidden), torch.nn.ReLU()]
+        width = hidden
+    mods.append(torch.nn.Linear(width, 1))
+    return torch.nn.Sequential(*mods).double()
+
+
+def to_model(net, mean, std, meta=None) -> fusion_mod.FusionModel:
+    """The NumPy FusionModel of a torch Sequential of Linear/ReLU layers."""
+    import torch
+
+    lin = [m for m in net if isinstance(m, torch.nn.Linear)]
+    ws = tuple(m.weight.detach().cpu().double().numpy().T.copy() for m in lin)
+    bs = tuple(m.bias.detach().cpu().double().numpy().copy() for m in lin)
+    return fusion_mod.FusionModel(ws, bs, np.asarray(mean, np.float64), np.asarray(std, np.float64), dict(meta or {}))
+
+
+def torch_forward(net, mean, std, x: np.ndarray) -> np.ndarray:
+    import torch
+
+    with torch.no_grad():
+        h = (torch.as_tensor(np.asarray(x, np.float64)) - torch.as_tensor(mean)) / torch.as_tensor(std)
+        return net(h)[:, 0].numpy()
+
+
+def _training_arrays(pairs: list[PairData]):
+    """All contour points of all pairs in one array, the positive index pairs into it, and per
+    pair the index ranges and moved positions for sampling negatives."""
+    xs, pos, groups = [], [], []
+    n = 0
+    for p in pairs:
+        off_a, off_b = [], []
+        for x in p.inputs_a:
+            off_a.append(n)
+            xs.append(x)
+            n += len(x)
+        for x in p.inputs_b:
+            off_b.append(n)
+            xs.append(x)
+            n += len(x)
+        if len(p.corr):
+            ia = np.asarray(off_a)[p.corr[:, 0]] + p.corr[:, 1]
+            ib = np.asarray(off_b)[p.corr[:, 2]] + p.corr[:, 3]
+            pos.append(np.stack([ia, ib], 1))
+        if p.inputs_a and p.inputs_b:
+            idx_a = np.concatenate([o + np.arange(len(x)) for o, x in zip(off_a, p.inputs_a)])
+            idx_b = np.concatenate([o + np.arange(len(x)) for o, x in zip(off_b, p.inputs_b)])
+            pts_a = np.concatenate([c.points for c in p.prepared_a.contours])
+            pts_b = np.concatenate(p.moved_b)
+            groups.append((idx_a, idx_b, pts_a, pts_b, NEGATIVE_BEYOND * p.scale, len(p.corr)))
+    x = np.concatenate(xs) if xs else np.zeros((0, 8))
+    return x, (np.concatenate(pos) if pos else np.zeros((0, 2), np.int64)), groups
+
+
+def _negatives(groups, count_per_group: list[int], rng: np.random.Generator) -> np.ndarray:
+    out = []
+    for (idx_a, idx_b, pts_a, pts_b, beyond, _), k in zip(groups, count_per_group):
+        if k <= 0:
+            continue
+        ka = rng.integers(0, len(idx_a), 2 * k)
+        kb = rng.integers(0, len(idx_b), 2 * k)
+        far = np.linalg.norm(pts_a[ka] - pts_b[kb], axis=1) > beyond
+        out.append(np.stack([idx_a[ka[far][:k]], idx_b[kb[far][:k]]], 1))
+    return np.concatenate(out) if out else np.zeros((0, 2), np.int64)
+
+
+def pair_loss(out, pos, neg, eps: float, cfg: TrainConfig):
+    """-log(soft true-flag rate) + fpr_exponent * log(soft false-flag rate).
+
+    A soft flag is sigmoid((1 - |V_i - V_j| / eps) / temperature), Eq. 33's flag made smooth.
+    The LCS of unrelated sequences grows about like the square root of their flag density,
+    the run along the true alignment like the share of true pairs flagged: the ratio
+    TPR / FPR^0.5 is what makes the true alignment the longest.
+    """
+    import torch
+
+    t = cfg.temperature
+    tpr = torch.sigmoid((1 - (out[pos[:, 0]] - out[pos[:, 1]]).abs() / eps) / t).mean()
+    fpr = torch.sigmoid((1 - (out[neg[:, 0]] - out[neg[:, 1]]).abs() / eps) / t).mean()
+    return -torch.log(tpr) + cfg.fpr_exponent * torch.log(fpr)
+
+
+def fit(pairs: list[PairData], cfg: TrainConfig, eps: float, steps: int | None = None, on_check=None,
+        progress: bool = True):
+    """Fit an MLP on the pairs; returns (net, mean, std, losses). `on_check(step, net)` runs
+    every cfg.check_every steps and at the end."""
+    import torch
+    from tqdm import tqdm
+
+    torch.manual_seed(cfg.seed)
+    torch.use_deterministic_algorithms(True)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # a tiny net: threads only add overhead and run-to-run noise
+    rng = np.random.default_rng(cfg.seed)
+    x, pos, groups = _training_arrays(pairs)
+    if len(pos) == 0:
+        raise ValueError("no true correspondences in the training pairs")
+    mean, std = _standardisation(x)
+    xt = torch.as_tensor((x - mean) / std)
+    post = torch.as_tensor(pos)
+    per_group = [g[5] * cfg.negatives for g in groups]
+    net = _torch_net(cfg.hidden, cfg.layers)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    steps = cfg.steps if steps is None else steps
+    losses = []
+    for step in tqdm(range(1, steps + 1), desc="train-fusion", disable=not progress, file=sys.stderr):
+        neg = torch.as_tensor(_negatives(groups, per_group, rng))
+        out = net(xt)[:, 0]
+        loss = pair_loss(out, post, neg, eps, cfg)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+        if on_check is not None and (step % cfg.check_every == 0 or step == steps):
+            on_check(step, net, mean, std)
+    torch.set_num_threads(threads)
+    return net, mean, std, losses
+
+
+def train(cfg: TrainConfig | None = None, params: Params | None = None, progress: bool = True, cache_dir=None,
+          log=None) -> TrainResult:
+    """Build the data, fit, select the checkpoint by the splicing error on held-out pairs."""
+    import copy
+
+    cfg = cfg or TrainConfig()
+    params = params or Params()
+    log = log or (lambda *a: None)
+    eps = params.lcs_eps
+    t0 = time.perf_counter()
+    train_pairs = build_pairs(object_specs(cfg.train_objects, cfg.train_seed), params, cfg.faces,
+                              cfg.pairs_per_object, progress, cache_dir, "training pairs")
+    # held-out objects of 3 pieces first: more pairs, each with fracture on several sides
+    val_pairs = build_pairs(object_specs(cfg.val_objects, cfg.val_seed, pieces=(3, 4, 2)), params, cfg.faces,
+                            cfg.pairs_per_object, progress, cache_dir, "held-out pairs")
+    t_data = time.perf_counter() - t0
+    log(f"{len(train_pairs)} training pairs ({sum(len(p.corr) for p in train_pairs)} true correspondences), "
+        f"{len(val_pairs)} held-out pairs, in {t_data:.0f} s")
+
+    checkpoints = []
+
+    def check(step, net, mean, std):
+        model = to_model(net, mean, std)
+        scores = [lcs_score(p, model, eps) for p in val_pairs]
+        share = sum(s.true for s in scores) / max(1, sum(s.total for s in scores))
+        checkpoints.append((step, share, copy.deepcopy(net), mean, std))
+        log(f"  step {step}: held-out LCS true share {share:.3f}")
+
+    t1 = time.perf_counter()
+    net, mean, std, losses = fit(train_pairs, cfg, eps, on_check=check, progress=progress)
+    t_fit = time.perf_counter() - t1
+
+    # the best checkpoints by LCS share, then by pair success from the LCS starts alone
+    t2 = time.perf_counter()
+    lcs_only = params.with_(max_patches=0)
+    finalists = sorted(checkpoints, key=lambda c: -c[1])[: cfg.finalists]
+    judged = []
+    for step, share, net_k, mean_k, std_k in finalists:
+        model = to_model(net_k, mean_k, std_k)
+        wins = sum(pair_result(p, model, lcs_only)[0] for p in val_pairs)
+        judged.append((wins, share, -step, step, net_k, mean_k, std_k))
+        log(f"  step {step}: LCS-only pair success {wins}/{len(val_pairs)}")
+    wins, share, _, step, net_k, mean_k, std_k = max(judged, key=lambda j: j[:3])
+    t_select = time.perf_counter() - t2
+    meta = {
+        "made_by": "relicgpu.fusion_train.train", "config": cfg.__dict__, "lcs_eps": eps,
+        "selected_step": step, "heldout_pairs": len(val_pairs), "heldout_lcs_true_share": round(share, 4),
+        "heldout_lcs_only_pair_success": wins, "training_pairs": len(train_pairs),
+        "true_correspondences": int(sum(len(p.corr) for p in train_pairs)),
+        "seconds": {"data": round(t_data, 1), "fit": round(t_fit, 1), "select": round(t_select, 1)},
+        "checkpoints": [[c[0], round(c[1], 4)] for c in checkpoints],
+    }
+    model = to_model(net_k, mean_k, std_k, meta)
+    return TrainResult(model, losses, [(c[0], c[1]) for c in checkpoints], meta)
+
+
+# --- CLI -------------------------------------------------------------------
+
+def cli_add_arguments(parser) -> None:
+    d = TrainConfig()
+    parser.add_argument("-o", "--out", required=True, help="weights file to write (.npz)")
+    parser.add_argument("--seed", type=int, default=d.seed, help="torch initialisation and sampling seed")
+    parser.add_argument("--train-objects", type=int, default=d.train_objects, help="synthetic objects to train on")
+    parser.add_argument("--val-objects", type=int, default=d.val_objects, help="held-out objects for model selection")
+    parser.add_argument("--steps", type=int, default=d.steps, help="optimiser steps (full batch)")
+    parser.add_argument("--hidden", type=int, default=d.hidden, help="units per hidden layer")
+    parser.add_argument("--fpr-exponent", type=float, default=d.fpr_exponent,
+                        help="weight of log(false-flag rate) in the loss (higher: sparser LCS flags)")
+    parser.add_argument("--cache-dir", default=None, help="where prepared training pairs are cached (default: temp dir)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar or log on stderr")
+
+
+def cli_main(args) -> int:
+    from .cli import CliError
+
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise CliError(f"{out}: the weights file must end in .npz")
+    if args.train_objects < 1 or args.val_objects < 1 or args.steps < 1 or args.hidden < 1 or args.fpr_exponent <= 0:
+        raise CliError("--train-objects, --val-objects, --steps, --hidden and --fpr-exponent must be positive")
+    cfg = replace(TrainConfig(), seed=args.seed, train_objects=args.train_objects, val_objects=args.val_objects,
+                  steps=args.steps, hidden=args.hidden, fpr_exponent=args.fpr_exponent)
+    log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
+    t0 = time.perf_counter()
+    result = train(cfg, progress=not args.quiet, cache_dir=args.cache_dir, log=log)
+    fusion_mod.save_model(out, result.model)
+    m = result.meta
+    log(f"wrote {out}: step {m['selected_step']}, held-out LCS true share {m['heldout_lcs_true_share']:.3f}, "
+        f"LCS-only pair success {m['heldout_lcs_only_pair_success']}/{m['heldout_pairs']} "
+        f"({time.perf_counter() - t0:.0f} s)")
+    return 0
