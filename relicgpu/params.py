@@ -42,6 +42,9 @@ class Params:
     ransac_iterations: int = 400
     ransac_inlier: float = 0.02      # correspondence inlier distance for the LCS pose
     hypotheses: int = 6              # coarse poses handed to ICP per pair
+    descriptor_radius: float = 0.08  # spin images of fracture points (0 turns these starts off) ...
+    descriptor_inlier: float = 0.02  # ... RANSAC over their matches, inlier distance
+    descriptor_starts: int = 8       # ... poses kept
     max_patches: int = 3             # fracture patches per fragment tried face to face ...
     min_patch_share: float = 0.15    # ... if at least this share of the largest patch's area
     patch_turns: int = 16            # turns about the common normal tried per patch pair

@@ -132,10 +132,13 @@ class Patch:
 
 
 def fracture_patches(fragment: Fragment, seg) -> list[Patch]:
+    """The fracture facets (regions between creases, before neighbouring fracture regions are
+    joined): one per cut a fragment met, each a candidate contact with one neighbour."""
     centres = fragment.vertices[fragment.faces].mean(axis=1)
+    fracture = seg.fracture_faces
     out = []
-    for r in np.flatnonzero(seg.region_is_fracture):
-        m = seg.face_region == r
+    for r in np.unique(seg.face_facet[fracture]):
+        m = (seg.face_facet == r) & fracture
         w = seg.areas[m]
         n = (seg.normals[m] * w[:, None]).sum(0)
         if w.sum() <= 0 or np.linalg.norm(n) == 0:
@@ -209,6 +212,19 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
             for pose, count in ransac_poses(src, dst, params.ransac_iterations, inlier, rng, keep=2):
                 starts.append(pose)
                 origins.append(("lcs", ca, cb, m.pairs))
+    if heads is None and params.descriptor_radius > 0:
+        from .descriptors import descriptor_correspondences, spin_images
+
+        radius = params.descriptor_radius * scale
+        da = spin_images(pa.sample.fracture, pa.sample.fracture_normals, radius)
+        db = spin_images(pb.sample.fracture, pb.sample.fracture_normals, radius, flip=True)
+        pairs = descriptor_correspondences(da, db)
+        if len(pairs) >= 3:
+            src, dst = pb.sample.fracture[pairs[:, 1]], pa.sample.fracture[pairs[:, 0]]
+            for pose, count in ransac_poses(src, dst, params.ransac_iterations * 2, params.descriptor_inlier * scale,
+                                            rng, keep=params.descriptor_starts):
+                starts.append(pose)
+                origins.append(("descriptor", -1, -1, np.zeros((0, 2), np.int64)))
     if heads is None:
         for P in _main_patches(pa.patches, params):
             for Q in _main_patches(pb.patches, params):

@@ -52,8 +52,9 @@ def mesh_topology(faces: np.ndarray) -> Topology:
 
 @dataclass(frozen=True)
 class Segmentation:
-    face_region: np.ndarray  # (F,) int region id per face
+    face_region: np.ndarray  # (F,) int fracture patch / original region id per face
     region_is_fracture: np.ndarray  # (R,) bool
+    face_facet: np.ndarray  # (F,) int region id before neighbouring fracture regions are joined
     face_roughness: np.ndarray  # (F,) degrees, normal perturbation
     edge_angle: np.ndarray  # (E,) degrees, normal angle of each interior edge
     normals: np.ndarray  # (F,3)
@@ -133,7 +134,7 @@ def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: floa
     patch = _components(len(f), topo.edge_faces[same])
     patch_is_fracture = np.zeros(int(patch.max()) + 1, bool)
     patch_is_fracture[patch[fracture]] = True
-    return Segmentation(patch, patch_is_fracture, rough, angle, normals, areas, topo)
+    return Segmentation(patch, patch_is_fracture, region, rough, angle, normals, areas, topo)
 
 
 def _components(n: int, edges: np.ndarray) -> np.ndarray:
