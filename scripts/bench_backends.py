@@ -238,7 +238,8 @@ def run_match(names, repeats, max_seconds, rows, log, pairs=TABLE1_PAIRS):
                 t, n = median_time(call, repeats, budget=max(3 * max_seconds, 1.0))
                 m = out["m"]
                 row.update(seconds=t, repeats=n, accepted=bool(m.accepted), reason=str(m.reason),
-                           rmse=float(m.rmse) if m.rmse is not None else None)
+                           rmse=float(m.rmse) if m.rmse is not None else None,
+                           stage_seconds={k: float(v) for k, v in dict(getattr(m, "timings", {}) or {}).items()})
                 results[name] = np.asarray(m.transform, float) if m.accepted else None
             except Exception as exc:
                 row.update(error=f"{type(exc).__name__}: {exc}")
