@@ -38,7 +38,7 @@ def spin_images(points: np.ndarray, normals: np.ndarray, radius: float, bins: tu
     return out / np.where(total > 0, total, 1)
 
 
-def descriptor_correspondences(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.9) -> np.ndarray:
+def descriptor_correspondences(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
     """(K,2) pairs (i of a, j of b): each b descriptor's nearest in a, kept when clearly nearer
     than the second nearest (Lowe's ratio test)."""
     if len(desc_a) < 2 or len(desc_b) == 0:
