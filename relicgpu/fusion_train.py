@@ -107,18 +107,31 @@ def true_correspondences(points_a: list, moved_b: list, within: float) -> np.nda
     return np.concatenate(out).astype(np.int64) if out else np.zeros((0, 4), np.int64)
 
 
+_DATA_MODULES = ("synth", "pipeline", "segment", "contour", "features", "icp", "verify", "params", "backends/numpy")
+
+
+def _code_hash() -> str:
+    """Hash of the code that makes the cached pairs: a change to it makes them again."""
+    h = hashlib.sha256()
+    base = Path(__file__).parent
+    for mod in _DATA_MODULES:
+        p = base / f"{mod}.py"
+        h.update(p.read_bytes() if p.exists() else b"-")
+    return h.hexdigest()[:16]
+
+
 def build_pairs(specs: list[ObjectSpec], params: Params | None = None, faces: int = 4000,
                 pairs_per_object: int = 2, progress: bool = True, cache_dir=None, desc: str = "pairs") -> list[PairData]:
     """Generate the objects, prepare up to `pairs_per_object` touching pairs of each (numpy
     backend) and find their true correspondences. Cached under `cache_dir` (default: the
-    system temp dir) by the specs and parameters, so a second run starts at once."""
+    system temp dir) by the specs, the parameters and the code that makes them."""
     from tqdm import tqdm
 
     from . import synth
     from .pipeline import prepare
 
     params = params or Params()
-    key = json.dumps([CACHE_VERSION, [s.__dict__ for s in specs], faces, pairs_per_object,
+    key = json.dumps([CACHE_VERSION, _code_hash(), [s.__dict__ for s in specs], faces, pairs_per_object,
                       {k: v for k, v in params.to_dict().items() if k != "fusion_weights"}], sort_keys=True)
     cache = Path(cache_dir or tempfile.gettempdir()) / "relicgpu-fusion-cache"
     path = cache / (hashlib.sha256(key.encode()).hexdigest()[:24] + ".pkl")
