@@ -32,6 +32,10 @@ function fmt(x, digits = 3) {
 
 // --- cases -----------------------------------------------------------------------
 
+function caseLabel(c) {
+  return `${c.id} (${c.fragments}${c.assembled ? ', assembled' : ''})`;
+}
+
 async function init() {
   let cases;
   try {
@@ -46,7 +50,7 @@ async function init() {
   for (const c of cases.cases) {
     const opt = document.createElement('option');
     opt.value = c.id;
-    opt.textContent = `${c.id} (${c.fragments} fragments${c.assembled ? ', assembled' : ''})`;
+    opt.textContent = caseLabel(c);
     ui.caseSelect.append(opt);
   }
   if (!cases.cases.length) {
@@ -444,7 +448,7 @@ async function refreshCaseLabels() {
     const cases = await api.getCases();
     for (const c of cases.cases) {
       const opt = [...ui.caseSelect.options].find((o) => o.value === c.id);
-      if (opt) opt.textContent = `${c.id} (${c.fragments} fragments${c.assembled ? ', assembled' : ''})`;
+      if (opt) opt.textContent = caseLabel(c);
     }
   } catch (_) { /* labels only */ }
 }
