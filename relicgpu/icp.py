@@ -101,34 +101,17 @@ class IcpResult:
 
 def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, backend, iterations: int,
         tolerance: float, reject: float, floor: float) -> IcpResult:
-    """Point-to-point ICP moving `source` onto `target` from the pose `init`.
+    """Point-to-point ICP (Alg. 5) moving `source` onto `target` from the pose `init`.
 
     Each round the subset X^p of the target nearest to the moved source (Eq. 35) is
     paired with it; pairs farther than the rejection distance (at most `reject`,
     shrinking with the median distance, never under `floor`) are left out of the fit.
     Stops when the mean distance d changes less than `tolerance`.
     """
-    pose = np.array(init, np.float64)
-    prev = np.inf
-    d_mean = np.inf
-    it = 0
-    for it in range(1, iterations + 1):
-        moved = apply(pose, source)
-        idx, dist = backend.nearest_neighbors(moved, target)
-        idx = np.asarray(idx, np.int64)
-        dist = np.asarray(dist, np.float64)
-        cutoff = max(floor, min(reject, 3.0 * float(np.median(dist))))
-        keep = dist < cutoff
-        if keep.sum() < 3:
-            break
-        d_mean = float(dist[keep].mean())
-        cs, ct, h, _ = backend.cross_covariance(moved[keep], target[idx[keep]])
-        step = kabsch(np.asarray(cs, np.float64), np.asarray(ct, np.float64), np.asarray(h, np.float64))
-        pose = step @ pose
-        if abs(prev - d_mean) < tolerance:
-            break
-        prev = d_mean
-    return IcpResult(pose, d_mean, it)
+    poses, _ = batched_icp(source, target, np.asarray(init, np.float64)[None], backend, iterations, reject, floor,
+                           tolerance if tolerance > 0 else 1e-300)
+    _, dist = backend.nearest_neighbors(apply(poses[0], source), target)
+    return IcpResult(poses[0], float(np.mean(dist)), iterations)
 
 
 def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -166,13 +149,15 @@ def facing_poses(centre_a, normal_a, centre_b, normal_b, steps: int) -> np.ndarr
 
 
 def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backend, iterations: int,
-                reject: float, floor: float) -> tuple[np.ndarray, np.ndarray]:
-    """A few rounds of ICP for many starting poses at once: every round is ONE nearest-neighbour
-    launch over all hypotheses' points. Returns the poses and each one's share of source points
-    ending within `floor` of the target."""
+                reject: float, floor: float, tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """ICP (Alg. 5, as `icp`) for many starting poses at once: every round is ONE nearest-neighbour
+    launch over all hypotheses' points. Stops after `iterations` rounds or when no hypothesis's
+    mean distance changes by `tolerance` or more. Returns the poses and each one's share of source
+    points ending within `floor` of the target."""
     poses = np.array(poses, np.float64)
     h, n = len(poses), len(source)
     share = np.zeros(h)
+    prev = np.full(h, np.inf)
     for _ in range(iterations):
         moved = np.einsum("hij,nj->hni", poses[:, :3, :3], source) + poses[:, None, :3, 3]
         idx, dist = backend.nearest_neighbors(moved.reshape(-1, 3), target)
@@ -196,6 +181,10 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
         step[:, :3, 3] = ct - np.einsum("hij,hj->hi", r, cs)
         ok = w.sum(axis=1) >= 3
         poses[ok] = step[ok] @ poses[ok]
+        mean = (w * dist).sum(axis=1) / wsum
+        if tolerance > 0 and np.all(np.abs(prev - mean) < tolerance):
+            break
+        prev = mean
     return poses, share
 
 

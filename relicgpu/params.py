@@ -58,7 +58,7 @@ class Params:
     icp_points: int = 2500           # fracture points sampled per fragment
     icp_iterations: int = 60
     icp_tolerance: float = 1e-5      # stop when the mean distance d changes less than this
-    verify_at_most: int = 3          # fits verified per pair, tightest first
+    verify_at_most: int = 6          # fits verified per pair, best-touching first, until one is accepted
     plane_iterations: int = 8        # point-to-plane polish after ICP
     icp_reject: float = 0.03         # nearest pairs farther than this are not used in the fit
 

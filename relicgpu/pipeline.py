@@ -14,7 +14,7 @@ from . import contour as contour_mod
 from . import features as features_mod
 from . import fusion as fusion_mod
 from .backends import resolve
-from .icp import batched_icp, facing_poses, icp, ransac_poses, refine_point_to_plane
+from .icp import batched_icp, facing_poses, ransac_poses, refine_point_to_plane
 from .io import Fragment
 from .params import Params
 from .segment import segment
@@ -248,15 +248,18 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
 
     t1 = time.perf_counter()
     fits = []
-    for share, pose, ca, cb, pairs in candidates:
-        fit = icp(pb.sample.fracture, pa.sample.fracture, pose, be, params.icp_iterations,
-                  params.icp_tolerance * scale, params.icp_reject * scale, params.contact_distance * scale)
-        polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
-                                         fit.transform, be, params.plane_iterations, params.contact_distance * scale)
-        fits.append((fit.mean_distance, polished, ca, cb, pairs))
-    # verify the tightest fits first; stop at the first accepted
+    if candidates:
+        # ICP of all hypotheses together (one nearest-neighbour launch per round), then each polished
+        fine, share = batched_icp(pb.sample.fracture, pa.sample.fracture, np.array([c[1] for c in candidates]), be,
+                                  params.icp_iterations, params.icp_reject * scale, params.contact_distance * scale,
+                                  params.icp_tolerance * scale)
+        for k in np.argsort(-share, kind="stable")[: params.verify_at_most]:
+            polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
+                                             fine[k], be, params.plane_iterations, params.contact_distance * scale)
+            fits.append((polished, *candidates[k][2:]))
+    # verify the best-touching fits first; stop at the first accepted
     best = None
-    for _, transform, ca, cb, pairs in sorted(fits, key=lambda f: f[0])[: params.verify_at_most]:
+    for transform, ca, cb, pairs in fits:
         ver = verify(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
                      params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
                      params.max_penetration)
