@@ -1,0 +1,751 @@
+"""Fragment classification: sort a mixed heap of fragments into groups by object.
+
+The paper's first module (sections 3.1 (1) and 3.2 step 2): before matching,
+fragments of the same object are put into one group, so that matching runs
+within groups. Two ways:
+
+- unsupervised, `group(fragments)`: per-fragment descriptors that survive
+  breakage (below), each with an uncertainty (the fragment's own spread of it,
+  floored); two fragments are as far apart as the mean number of standard errors
+  between their descriptors; average-linkage agglomerative clustering, the number
+  of groups the one of best silhouette (one group when no split reaches
+  `min_silhouette`), or the tree cut at a given distance.
+- supervised, `relicgpu train-classifier LABELS.csv`: a small PointNet over
+  surface points (position in the fragment's principal frame, normal, fracture
+  flag) joined with the descriptors, trained with torch; `relicgpu group
+  --classifier WEIGHTS` then labels fragments by class.
+
+Descriptors (lengths in units of a reference length: the heap's median fragment
+size unsupervised, the training set's in a classifier), all of which a piece
+keeps from its object whatever the cuts were:
+  original surface: curvature distribution (quantiles of the larger and smaller
+    normal curvature over its edges, signed: convex > 0), wall thickness (rays cast
+    inward along the normals to the first surface hit), roughness (normal
+    perturbation at triangle scale, from the segmentation);
+  fracture surfaces: roughness (normal perturbation; RMS height about each
+    patch's plane), share of the area;
+  colour: mean and spread of the vertex colours of the original surface, when
+    every fragment's file has them.
+"""
+from __future__ import annotations
+
+import csv
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .io import Fragment, FragmentError, atomic_write_bytes, atomic_write_json
+
+DESCRIPTOR_NAMES = (
+    "kmax_q25", "kmax_q50", "kmax_q75", "kmin_q25", "kmin_q50", "kmin_q75",
+    "thickness_q25", "thickness_q50", "thickness_q75",
+    "orig_roughness", "frac_roughness", "frac_height", "frac_share",
+)
+THICKNESS_RAYS = 160
+# Floors of the uncertainty of each compared feature (thickness median, larger and smaller
+# curvature medians, original-surface roughness, fracture height, fracture share): a
+# fragment's own spread stands for the rest (see Descriptor.evidence).
+FEATURE_NAMES = ("log_thickness", "kmax", "kmin", "orig_roughness", "frac_height", "frac_share")
+FEATURE_FLOORS = (0.05, 0.2, 0.2, 0.25, 0.4, 0.15)
+COLOUR_FLOOR = 0.02
+# One group when the whole heap merges within this distance (mean standard errors): fragments
+# of one object measured 0.3-0.5 apart (median) on the synthetic mixtures, objects 1.2-1.8.
+MIN_SPLIT_DISTANCE = 1.0
+CLASSIFIER_POINTS = 256
+
+
+@dataclass(frozen=True)
+class Descriptor:
+    """Raw geometry of one fragment, in the fragment's own units (see the module docstring)."""
+    name: str
+    kmax: np.ndarray  # (Q,) area-weighted quantiles 25/50/75 of the larger normal curvature, 1/length
+    kmin: np.ndarray  # (Q,) same for the smaller
+    thickness: np.ndarray  # (3,) quantiles 25/50/75 of wall thickness, length (nan when unmeasured)
+    orig_roughness: float  # degrees
+    frac_roughness: float  # degrees
+    frac_height: float  # RMS height of fracture patches about their planes, length
+    frac_share: float  # fracture area / total area
+    size: float  # bounding-box diagonal
+    colour: np.ndarray | None = None  # (6,) mean and std of RGB in [0, 1] on the original surface
+
+    def vector(self, ref_length: float) -> np.ndarray:
+        """Unit-free feature vector: curvatures as asinh(k * L), lengths as log(x / L)."""
+        L = float(ref_length)
+        thick = np.log(np.maximum(np.nan_to_num(self.thickness, nan=self.size), 1e-6 * L) / L)
+        v = [np.arcsinh(self.kmax * L), np.arcsinh(self.kmin * L), thick,
+             [np.log1p(self.orig_roughness), np.log1p(self.frac_roughness),
+              np.log(max(self.frac_height, 1e-6 * L) / L), self.frac_share]]
+        if self.colour is not None:
+            v.append(self.colour)
+        return np.concatenate([np.asarray(x, np.float64).ravel() for x in v])
+
+    def evidence(self, ref_length: float) -> tuple[np.ndarray, np.ndarray]:
+        """(values, sigmas): the unit-free features compared between fragments and the
+        uncertainty of each, the fragment's own spread (interquartile range / 1.35) where it
+        has one, combined with a floor (FEATURE_FLOORS)."""
+        x = self.vector(ref_length)
+        iqr = lambda lo, hi: (x[hi] - x[lo]) / 1.35
+        values = [x[7], x[1], x[4], x[9], x[11], x[12]]
+        spread = [iqr(6, 8), iqr(0, 2), iqr(3, 5), 0.0, 0.0, 0.0]
+        floors = list(FEATURE_FLOORS)
+        if self.colour is not None:
+            values += list(self.colour[:3])
+            spread += list(self.colour[3:])
+            floors += [COLOUR_FLOOR] * 3
+        return np.array(values), np.hypot(np.array(spread), np.array(floors))
+
+
+@dataclass(frozen=True)
+class Grouping:
+    names: list[str]
+    labels: np.ndarray  # (n,) group per fragment, 0 the largest
+    silhouette: float  # of the chosen split (nan for one group)
+    scores: dict = field(default_factory=dict)  # k -> silhouette of each split tried
+    method: str = "average"
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def groups(self) -> list[list[str]]:
+        return [[n for n, l in zip(self.names, self.labels) if l == g] for g in range(int(self.labels.max()) + 1)]
+
+    def to_dict(self) -> dict:
+        return {"version": 1, "method": self.method,
+                "groups": self.groups,
+                "fragments": [{"file": n, "group": int(l)} for n, l in zip(self.names, self.labels)],
+                "silhouette": None if not np.isfinite(self.silhouette) else float(self.silhouette),
+                "silhouette_by_k": {str(k): float(s) for k, s in self.scores.items()},
+                "timings": {k: round(float(v), 4) for k, v in self.timings.items()}}
+
+
+# --- descriptors -------------------------------------------------------------
+
+def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None) -> Descriptor:
+    """The breakage-surviving descriptors of one fragment."""
+    from .backends import resolve
+    from .params import Params
+    from .segment import segment
+
+    v = np.asarray(fragment.vertices, np.float64)
+    f = np.asarray(fragment.faces, np.int64)
+    if len(f) < 4:
+        raise FragmentError(f"{fragment.source or fragment.name}: too few faces ({len(f)}) to describe")
+    size = fragment.size
+    seg = segment(v, f, params or Params(), size, resolve("numpy"))
+    frac = seg.fracture_faces
+    areas, fn = seg.areas, seg.normals
+    total = float(areas.sum())
+    orig = ~frac
+    if not orig.any():  # all fracture (a tiny chip): describe it as one surface
+        orig = np.ones(len(f), bool)
+
+    vn = _vertex_normals(len(v), f, fn, areas)
+    kmax, kmin, vweight = _principal_curvatures(v, f, vn, orig, areas)
+    q = (0.25, 0.5, 0.75)
+    kmax_q = _wquantiles(kmax, vweight, q)
+    kmin_q = _wquantiles(kmin, vweight, q)
+
+    thickness = _wall_thickness(v, f, fn, areas, orig)
+    orig_rough = float(np.average(seg.face_roughness[orig], weights=areas[orig] + 1e-300))
+    if frac.any():
+        frac_rough = float(np.average(seg.face_roughness[frac], weights=areas[frac] + 1e-300))
+        frac_height = _patch_height(v, f, seg.face_region, frac, areas)
+    else:
+        frac_rough, frac_height = 0.0, 0.0
+    colour = None
+    if colours is not None and len(colours) == len(v):
+        used = np.zeros(len(v), bool)
+        used[f[orig].ravel()] = True
+        c = np.asarray(colours, np.float64)[used, :3]
+        c = c / 255.0 if c.max() > 1.0 else c
+        colour = np.concatenate([c.mean(0), c.std(0)])
+    return Descriptor(fragment.name, kmax_q, kmin_q, thickness, orig_rough, frac_rough, frac_height,
+                      float(areas[frac].sum() / total) if total > 0 else 0.0, size, colour)
+
+
+def _vertex_normals(nv, f, fn, areas):
+    n = np.zeros((nv, 3))
+    w = fn * areas[:, None]
+    for k in range(3):
+        np.add.at(n, f[:, k], w)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def _principal_curvatures(v, f, vn, face_mask, areas):
+    """Per vertex of the masked faces: the largest and smallest normal curvature over its
+    edges, k = (n_j - n_i).(p_j - p_i) / |p_j - p_i|^2 (convex > 0), and the vertex's area.
+
+    Edges where a vertex touches a face outside the mask (the crease to a fracture) are
+    left out: the normal there averages two surfaces."""
+    sub = f[face_mask]
+    touch_other = np.zeros(len(v), bool)
+    touch_other[f[~face_mask].ravel()] = True
+    e = np.concatenate([sub[:, [0, 1]], sub[:, [1, 2]], sub[:, [2, 0]]])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    e = e[~(touch_other[e[:, 0]] | touch_other[e[:, 1]])]
+    d = v[e[:, 1]] - v[e[:, 0]]
+    k = np.einsum("ij,ij->i", vn[e[:, 1]] - vn[e[:, 0]], d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300)
+    nv = len(v)
+    kmax = np.full(nv, -np.inf)
+    kmin = np.full(nv, np.inf)
+    for col in (0, 1):
+        np.maximum.at(kmax, e[:, col], k)
+        np.minimum.at(kmin, e[:, col], k)
+    weight = np.zeros(nv)
+    for c in range(3):
+        np.add.at(weight, sub[:, c], areas[face_mask] / 3)
+    ok = np.isfinite(kmax) & np.isfinite(kmin) & (weight > 0)
+    if not ok.any():
+        return np.zeros(1), np.zeros(1), np.ones(1)
+    return kmax[ok], kmin[ok], weight[ok]
+
+
+def _wquantiles(x, w, qs):
+    order = np.argsort(x)
+    cum = np.cumsum(w[order])
+    cum = cum / cum[-1]
+    return np.array([x[order][min(np.searchsorted(cum, q), len(x) - 1)] for q in qs])
+
+
+def _wall_thickness(v, f, fn, areas, orig, rays=THICKNESS_RAYS):
+    """Quantiles 25/50/75 of the distance from original-surface face centres inward along
+    the negative normal to the first other surface hit (Moller-Trumbore on every face)."""
+    cand = np.flatnonzero(orig)
+    if len(cand) == 0:
+        return np.full(3, np.nan)
+    rng = np.random.default_rng(len(f))
+    pick = rng.choice(cand, min(rays, len(cand)), replace=False, p=areas[cand] / areas[cand].sum())
+    tri = v[f]
+    origin = tri[pick].mean(axis=1)
+    direction = -fn[pick]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    eps = 1e-9 * max(1.0, float(np.abs(v).max()))
+    hits = np.full(len(pick), np.nan)
+    chunk = max(1, 2_000_000 // len(f))
+    for s in range(0, len(pick), chunk):
+        o, d = origin[s:s + chunk, None, :], direction[s:s + chunk, None, :]
+        p = np.cross(d, e2[None])
+        det = np.einsum("rfk,fk->rf", p, e1)
+        inv = 1.0 / np.where(np.abs(det) > 1e-300, det, np.inf)
+        tvec = o - tri[None, :, 0]
+        u = np.einsum("rfk,rfk->rf", tvec, p) * inv
+        qv = np.cross(tvec, e1[None])
+        w = np.einsum("rfk,rk->rf", qv, d[:, 0]) * inv
+        t = np.einsum("rfk,fk->rf", qv, e2) * inv
+        ok = (u >= 0) & (w >= 0) & (u + w <= 1) & (t > eps)
+        ok[np.arange(len(o)), pick[s:s + chunk]] = False  # the face the ray starts on
+        t = np.where(ok, t, np.inf)
+        best = t.min(axis=1)
+        hits[s:s + chunk] = np.where(np.isfinite(best), best, np.nan)
+    good = np.isfinite(hits)
+    if not good.any():
+        return np.full(3, np.nan)
+    return np.quantile(hits[good], (0.25, 0.5, 0.75))
+
+
+def _patch_height(v, f, face_region, frac, areas):
+    """Area-weighted RMS distance of fracture face centres from their patch's best-fit plane."""
+    centres = v[f].mean(axis=1)
+    num = den = 0.0
+    for r in np.unique(face_region[frac]):
+        m = face_region == r
+        if m.sum() < 6:
+            continue
+        w = areas[m]
+        c = centres[m]
+        mu = (c * w[:, None]).sum(0) / w.sum()
+        cov = ((c - mu) * w[:, None]).T @ (c - mu) / w.sum()
+        normal = np.linalg.eigh(cov)[1][:, 0]
+        h = (c - mu) @ normal
+        num += float((w * h * h).sum())
+        den += float(w.sum())
+    return float(np.sqrt(num / den)) if den > 0 else 0.0
+
+
+def _colours_of(fragment: Fragment):
+    """Vertex colours from the fragment's file, when it has them (else None)."""
+    if not fragment.source or not Path(fragment.source).is_file():
+        return None
+    try:
+        import trimesh
+        mesh = trimesh.load(fragment.source, force="mesh", process=False)
+        vc = getattr(mesh.visual, "vertex_colors", None)
+        if getattr(mesh.visual, "kind", None) != "vertex" or vc is None or len(vc) != len(fragment.vertices):
+            return None
+        return np.asarray(vc, np.float64)
+    except Exception:  # a colour we cannot read is no colour; the geometry was loaded already
+        return None
+
+
+def describe_all(fragments: list[Fragment], params=None, progress: bool = False) -> list[Descriptor]:
+    colours = [_colours_of(fr) for fr in fragments]
+    if any(c is None for c in colours):  # colour only counts when every fragment has it
+        colours = [None] * len(fragments)
+    it = zip(fragments, colours)
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(list(it), desc="describe", unit="frag", file=sys.stderr, leave=False)
+    return [describe(fr, params, c) for fr, c in it]
+
+
+def descriptor_matrix(descriptors: list[Descriptor], ref_length: float | None = None) -> tuple[np.ndarray, float]:
+    """(n, D) unit-free descriptors and the reference length used (default: median fragment size)."""
+    L = float(ref_length or np.median([d.size for d in descriptors]))
+    return np.stack([d.vector(L) for d in descriptors]), L
+
+
+def standardise(x: np.ndarray) -> np.ndarray:
+    """Robust z-scores per column: (x - median) / (1.4826 MAD), the MAD floored by the std / 4 and
+    by 1e-9 (a column constant over the heap carries nothing)."""
+    med = np.median(x, axis=0)
+    mad = 1.4826 * np.median(np.abs(x - med), axis=0)
+    spread = np.maximum(np.maximum(mad, 0.25 * x.std(axis=0)), 1e-9)
+    return (x - med) / spread
+
+
+# --- unsupervised -------------------------------------------------------------
+
+def silhouette(dist: np.ndarray, labels: np.ndarray) -> float:
+    """Mean silhouette of a labelling over a full distance matrix (singletons score 0)."""
+    ks = np.unique(labels)
+    if len(ks) < 2 or len(ks) >= len(labels):
+        return float("nan")
+    mean_to = np.stack([dist[:, labels == k].sum(1) for k in ks], axis=1)
+    counts = np.array([(labels == k).sum() for k in ks], np.float64)
+    own = np.searchsorted(ks, labels)
+    n_own = counts[own]
+    a = mean_to[np.arange(len(labels)), own] / np.maximum(n_own - 1, 1)
+    other = mean_to / counts[None]
+    other[np.arange(len(labels)), own] = np.inf
+    b = other.min(1)
+    s = np.where(n_own > 1, (b - a) / np.maximum(np.maximum(a, b), 1e-300), 0.0)
+    return float(s.mean())
+
+
+def evidence_distance(values: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """(n, n) mean over features of |x_i - x_j| / sqrt(s_i^2 + s_j^2): how many standard
+    errors apart two fragments are, each feature weighed by how well both measured it."""
+    diff = np.abs(values[:, None] - values[None])
+    d = (diff / np.sqrt(sigmas[:, None] ** 2 + sigmas[None] ** 2)).mean(axis=2)
+    np.fill_diagonal(d, 0.0)
+    return 0.5 * (d + d.T)
+
+
+def cluster(dist: np.ndarray, n_groups: int | None = None, distance: float | None = None,
+            min_silhouette: float = 0.25, max_groups: int | None = None,
+            min_split: float = MIN_SPLIT_DISTANCE) -> tuple[np.ndarray, float, dict]:
+    """Average-linkage clustering of a distance matrix: labels (0 = largest group), silhouette,
+    and the silhouette of every number of groups tried (when the number is chosen).
+
+    Silhouette cannot judge one group against several, so the heap stays one group when
+    the two last clusters merge closer than `min_split` (or no split reaches min_silhouette)."""
+    from scipy.cluster.hierarchy import fcluster, linkage
+    from scipy.spatial.distance import squareform
+
+    n = len(dist)
+    if n == 1:
+        return np.zeros(1, np.int64), float("nan"), {}
+    tree = linkage(squareform(dist, checks=False), method="average")
+    scores = {}
+    if n_groups is not None:
+        labels = fcluster(tree, min(int(n_groups), n), criterion="maxclust")
+    elif distance is not None:
+        labels = fcluster(tree, float(distance), criterion="distance")
+    else:
+        best, labels = -np.inf, np.ones(n, np.int64)
+        for k in range(2, min(max_groups or n // 2, n - 1) + 1):
+            lab = fcluster(tree, k, criterion="maxclust")
+            s = silhouette(dist, lab)
+            scores[k] = s
+            if s > best:
+                best, labels = s, lab
+        if not best >= min_silhouette or tree[-1, 2] < min_split:
+            labels = np.ones(n, np.int64)
+    labels = _relabel_by_size(np.asarray(labels))
+    return labels, silhouette(dist, labels), scores
+
+
+def _relabel_by_size(labels):
+    ks, first, counts = np.unique(labels, return_index=True, return_counts=True)
+    order = sorted(range(len(ks)), key=lambda i: (-counts[i], first[i]))
+    remap = {ks[i]: r for r, i in enumerate(order)}
+    return np.array([remap[l] for l in labels], np.int64)
+
+
+def group_fragments(fragments: list[Fragment], n_groups: int | None = None, distance: float | None = None,
+                    min_silhouette: float = 0.25, params=None, progress: bool = False) -> Grouping:
+    """Unsupervised grouping of a heap (see the module docstring)."""
+    if not fragments:
+        raise FragmentError("no fragments to group")
+    t0 = time.perf_counter()
+    desc = describe_all(fragments, params, progress)
+    t1 = time.perf_counter()
+    L = float(np.median([d.size for d in desc]))
+    values, sigmas = (np.stack(a) for a in zip(*(d.evidence(L) for d in desc)))
+    labels, sil, scores = cluster(evidence_distance(values, sigmas), n_groups, distance, min_silhouette)
+    t2 = time.perf_counter()
+    return Grouping([fr.name for fr in fragments], labels, sil, scores, "average",
+                    {"describe": t1 - t0, "cluster": t2 - t1})
+
+
+def group(fragments, n_groups: int | None = None, **kw) -> list[list[str]]:
+    """Fragments (a list, or a directory) -> groups of fragment names, largest first."""
+    return group_fragments(_load(fragments), n_groups, **kw).groups
+
+
+def adjusted_rand_index(truth, pred) -> float:
+    """Hubert-Arabie adjusted Rand index of two labellings."""
+    from scipy.special import comb
+
+    _, t = np.unique(np.asarray(truth), return_inverse=True)
+    _, p = np.unique(np.asarray(pred), return_inverse=True)
+    table = np.zeros((t.max() + 1, p.max() + 1))
+    np.add.at(table, (t, p), 1)
+    n = len(t)
+    sum_cells = comb(table, 2).sum()
+    sum_rows, sum_cols = comb(table.sum(1), 2).sum(), comb(table.sum(0), 2).sum()
+    expected = sum_rows * sum_cols / comb(n, 2)
+    top = 0.5 * (sum_rows + sum_cols)
+    if top == expected:
+        return 1.0
+    return float((sum_cells - expected) / (top - expected))
+
+
+def _load(fragments_or_dir) -> list[Fragment]:
+    if isinstance(fragments_or_dir, (str, Path)):
+        from .io import load_directory
+        return load_directory(fragments_or_dir)
+    return list(fragments_or_dir)
+
+
+# --- supervised: a small PointNet ------------------------------------------------
+
+def point_features(fragment: Fragment, ref_length: float, n_points: int = CLASSIFIER_POINTS,
+                   rng: np.random.Generator | None = None, params=None, copies: int = 1) -> np.ndarray:
+    """(copies, n_points, 7) area-weighted surface samples: position in the fragment's principal
+    frame (over ref_length), face normal in that frame, fracture flag; independent samples."""
+    from .backends import resolve
+    from .params import Params
+    from .segment import segment
+
+    rng = rng or np.random.default_rng(0)
+    v, f = np.asarray(fragment.vertices, np.float64), np.asarray(fragment.faces, np.int64)
+    seg = segment(v, f, params or Params(), fragment.size, resolve("numpy"))
+    return np.stack([_sample_points(v, f, seg, ref_length, n_points, rng) for _ in range(copies)])
+
+
+def _sample_points(v, f, seg, ref_length, n_points, rng):
+    p = seg.areas / seg.areas.sum()
+    idx = rng.choice(len(f), n_points, p=p)
+    r1, r2 = rng.random((2, n_points))
+    s = np.sqrt(r1)
+    tri = v[f[idx]]
+    pts = (1 - s)[:, None] * tri[:, 0] + (s * (1 - r2))[:, None] * tri[:, 1] + (s * r2)[:, None] * tri[:, 2]
+    centre = (v[f].mean(1) * seg.areas[:, None]).sum(0) / seg.areas.sum()
+    _, vec = np.linalg.eigh(np.cov((pts - centre).T))
+    frame = vec[:, ::-1]
+    local = (pts - centre) @ frame
+    # the sign of each axis: the side holding the third moment's weight (skewness > 0)
+    signs = np.sign(np.sum(local ** 3, axis=0))
+    signs[signs == 0] = 1
+    signs[2] = signs[0] * signs[1] * np.linalg.det(frame)  # keep a rotation
+    frame = frame * signs
+    local = (pts - centre) @ frame
+    normals = seg.normals[idx] @ frame
+    return np.hstack([local / ref_length, normals, seg.fracture_faces[idx, None].astype(np.float64)])
+
+
+def _net(n_desc: int, n_classes: int):
+    import torch.nn as nn
+
+    class PointNetClassifier(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.point = nn.Sequential(nn.Conv1d(7, 32, 1), nn.BatchNorm1d(32), nn.ReLU(),
+                                       nn.Conv1d(32, 64, 1), nn.BatchNorm1d(64), nn.ReLU(),
+                                       nn.Conv1d(64, 128, 1), nn.BatchNorm1d(128), nn.ReLU())
+            self.head = nn.Sequential(nn.Linear(128 + n_desc, 64), nn.BatchNorm1d(64), nn.ReLU(),
+                                      nn.Dropout(0.2), nn.Linear(64, n_classes))
+
+        def forward(self, pts, desc):
+            import torch
+            g = self.point(pts.transpose(1, 2)).max(dim=2).values
+            return self.head(torch.cat([g, desc], dim=1))
+
+    return PointNetClassifier()
+
+
+@dataclass
+class Classifier:
+    classes: list[str]
+    ref_length: float
+    desc_mean: np.ndarray
+    desc_std: np.ndarray
+    state: dict  # torch state dict
+    history: list = field(default_factory=list)  # mean training loss per epoch
+    timings: dict = field(default_factory=dict)
+
+    def save(self, path) -> None:
+        import io as _io
+        import torch
+        buf = _io.BytesIO()
+        torch.save({"version": 1, "classes": self.classes, "ref_length": self.ref_length,
+                    "desc_mean": self.desc_mean.tolist(), "desc_std": self.desc_std.tolist(),
+                    "state": self.state}, buf)
+        atomic_write_bytes(path, buf.getvalue())
+
+    @staticmethod
+    def load(path) -> "Classifier":
+        import torch
+        try:
+            d = torch.load(path, map_location="cpu", weights_only=True)
+            return Classifier(list(d["classes"]), float(d["ref_length"]), np.asarray(d["desc_mean"]),
+                              np.asarray(d["desc_std"]), d["state"])
+        except FileNotFoundError:
+            raise FragmentError(f"{path}: no such file") from None
+        except Exception as exc:
+            raise FragmentError(f"{path}: not a relicgpu classifier ({exc})") from None
+
+    def predict(self, fragments: list[Fragment], params=None) -> tuple[list[str], np.ndarray]:
+        """Class name per fragment and the class probabilities (n, C)."""
+        import torch
+        desc = describe_all(fragments, params)
+        x = np.stack([d.vector(self.ref_length) for d in desc])
+        if x.shape[1] != len(self.desc_mean):
+            raise FragmentError(f"the classifier was trained with {len(self.desc_mean)} descriptors, these "
+                                f"fragments give {x.shape[1]} (colour present in one and not the other?)")
+        pts = np.stack([point_features(fr, self.ref_length, params=params)[0] for fr in fragments])
+        net = _net(x.shape[1], len(self.classes))
+        net.load_state_dict(self.state)
+        net.eval()
+        with torch.no_grad():
+            logits = net(torch.as_tensor(pts, dtype=torch.float32),
+                         torch.as_tensor((x - self.desc_mean) / self.desc_std, dtype=torch.float32))
+            prob = torch.softmax(logits, 1).numpy()
+        return [self.classes[k] for k in prob.argmax(1)], prob
+
+
+def train_classifier(fragments: list[Fragment], labels: list[str], epochs: int = 120, seed: int = 0,
+                     params=None, progress: bool = False, copies: int = 4) -> Classifier:
+    """Train the PointNet classifier on labelled fragments (torch, CPU or CUDA)."""
+    import torch
+
+    if len(fragments) != len(labels) or not fragments:
+        raise FragmentError("need one label per fragment and at least one fragment")
+    classes = sorted(set(labels))
+    if len(classes) < 2:
+        raise FragmentError(f"need at least two classes to train, got {classes}")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # a net this small runs fastest on one thread, above all on a shared CPU
+    try:
+        return _train(fragments, labels, classes, epochs, seed, params, progress, copies)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train(fragments, labels, classes, epochs, seed, params, progress, copies) -> Classifier:
+    import torch
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    desc = describe_all(fragments, params, progress)
+    x, L = descriptor_matrix(desc)
+    mean, std = x.mean(0), np.maximum(x.std(0), 1e-6)
+    xs = (x - mean) / std
+    y = np.array([classes.index(l) for l in labels])
+    # a few independent point samples per fragment: the sampling itself is an augmentation
+    pts = np.stack([point_features(fr, L, rng=rng, params=params, copies=copies)
+                    for fr in fragments])  # (n, copies, P, 7)
+    timings = {"features": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    net = _net(x.shape[1], len(classes))
+    opt = torch.optim.AdamW(net.parameters(), lr=2e-3, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs)
+    pts_t = torch.as_tensor(pts, dtype=torch.float32)
+    xs_t = torch.as_tensor(xs, dtype=torch.float32)
+    y_t = torch.as_tensor(y)
+    n = len(fragments)
+    batch = min(32, n)
+    history = []
+    bar = range(epochs)
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(bar, desc="train", unit="epoch", file=sys.stderr, leave=False)
+    for _ in bar:
+        net.train()
+        order = torch.randperm(n)
+        total = 0.0
+        for s in range(0, n - (n % batch if n > batch and n % batch == 1 else 0), batch):
+            b = order[s:s + batch]
+            if len(b) < 2:
+                continue
+            c = torch.randint(0, copies, (len(b),))
+            p = pts_t[b, c].clone()
+            # mirror-free augmentation: flip two principal axes together, jitter, scale +-5%
+            flip = torch.where(torch.rand(len(b), 1, 2) < 0.5, -1.0, 1.0)
+            p[:, :, [0, 1]] *= flip
+            p[:, :, [3, 4]] *= flip
+            p[:, :, :3] = p[:, :, :3] * (1 + 0.05 * (2 * torch.rand(len(b), 1, 1) - 1))
+            p[:, :, :3] += 0.002 * torch.randn_like(p[:, :, :3])
+            d = xs_t[b] + 0.05 * torch.randn_like(xs_t[b])
+            loss = torch.nn.functional.cross_entropy(net(p, d), y_t[b], label_smoothing=0.05)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            total += float(loss.detach()) * len(b)
+        sched.step()
+        history.append(total / n)
+    state = {k: v.detach().cpu() for k, v in net.state_dict().items()}
+    timings["train"] = time.perf_counter() - t0
+    return Classifier(classes, L, mean, std, state, history, timings)
+
+
+def read_labels_csv(path) -> tuple[list[Path], list[str]]:
+    """LABELS.csv: rows `file,label` (a header row `file,label` is skipped); files relative to the csv."""
+    p = Path(path)
+    try:
+        rows = list(csv.reader(p.read_text().splitlines()))
+    except FileNotFoundError:
+        raise FragmentError(f"{p}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FragmentError(f"{p}: unreadable ({exc})") from None
+    files, labels = [], []
+    for line, row in enumerate(rows, 1):
+        if not row or not "".join(row).strip() or row[0].startswith("#"):
+            continue
+        if line == 1 and [c.strip().lower() for c in row[:2]] == ["file", "label"]:
+            continue
+        if len(row) != 2 or not row[0].strip() or not row[1].strip():
+            raise FragmentError(f"{p}: line {line}: expected `file,label`, got {','.join(row)!r}")
+        f = Path(row[0].strip())
+        files.append(f if f.is_absolute() else p.parent / f)
+        labels.append(row[1].strip())
+    if not files:
+        raise FragmentError(f"{p}: no labelled files")
+    return files, labels
+
+
+# --- assemble each group on its own -------------------------------------------------
+
+def assemble_grouped(fragments_or_dir, out_dir=None, n_groups: int | None = None, classifier=None, **assemble_kw):
+    """Group the heap, then assemble each group on its own.
+
+    Returns (Grouping, [Assembly per group]). With out_dir, writes out_dir/groups.json and
+    out_dir/assembly.json in the assembly format, each fragment carrying "object" (its
+    classification group) and "group" (its assembled piece, numbered over all objects),
+    plus each object's own outputs under out_dir/object_<k>/.
+    """
+    from .assembly import assemble
+
+    fragments = _load(fragments_or_dir)
+    if classifier is not None:
+        names, _ = (classifier if isinstance(classifier, Classifier) else Classifier.load(classifier)).predict(fragments)
+        classes = sorted(set(names), key=lambda c: (-names.count(c), c))
+        grouping = Grouping([fr.name for fr in fragments], np.array([classes.index(c) for c in names]),
+                            float("nan"), method="classifier")
+    else:
+        grouping = group_fragments(fragments, n_groups)
+    by_name = {fr.name: fr for fr in fragments}
+    results, doc_fragments, doc_matches, timings = [], [], [], {}
+    offset = 0
+    for k, names in enumerate(grouping.groups):
+        sub_out = None if out_dir is None else Path(out_dir) / f"object_{k}"
+        members = [by_name[n] for n in names]
+        if len(members) == 1:
+            results.append(None)
+            doc_fragments.append({"file": names[0], "pose": np.eye(4).tolist(), "group": offset, "object": k})
+            offset += 1
+            continue
+        res = assemble(members, out_dir=sub_out, **assemble_kw)
+        results.append(res)
+        d = res.to_dict()
+        for e in d["fragments"]:
+            doc_fragments.append({**e, "group": e["group"] + offset, "object": k})
+        doc_matches.extend(d["matches"])
+        offset += res.n_groups
+        for key, val in res.timings.items():
+            timings[key] = timings.get(key, 0.0) + float(val)
+    if out_dir is not None:
+        out = Path(out_dir)
+        atomic_write_json(out / "groups.json", grouping.to_dict())
+        first = next((r for r in results if r is not None), None)
+        atomic_write_json(out / "assembly.json", {
+            "version": 1, "fragments": doc_fragments, "matches": doc_matches,
+            "backend": first.backend if first else None, "engine": first.engine if first else None,
+            "timings": {**{k: round(v, 4) for k, v in timings.items()},
+                        **{f"group_{k}": round(float(v), 4) for k, v in grouping.timings.items()}},
+            "objects": grouping.groups})
+    return grouping, results
+
+
+# --- CLI ------------------------------------------------------------------------------
+
+def cli_add_arguments(parser, name="group") -> None:
+    if name == "train-classifier":
+        parser.add_argument("labels", metavar="LABELS.csv", help="rows `file,label` (paths relative to the csv)")
+        parser.add_argument("-o", "--out", default=None,
+                            help="weights file to write (default: classifier.pt beside LABELS.csv)")
+        parser.add_argument("--epochs", type=int, default=120, help="training epochs (default: 120)")
+        parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+        parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+        return
+    parser.add_argument("directory", metavar="DIR", help="directory of fragment meshes")
+    parser.add_argument("-o", "--out", required=True, help="output directory (groups.json)")
+    parser.add_argument("--groups", type=int, default=None, help="number of groups (default: found)")
+    parser.add_argument("--distance", type=float, default=None,
+                        help="cut the tree at this distance (standard errors) instead of choosing by silhouette")
+    parser.add_argument("--min-silhouette", type=float, default=0.25,
+                        help="below this best silhouette the heap stays one group (default: 0.25)")
+    parser.add_argument("--classifier", default=None, metavar="WEIGHTS",
+                        help="classify with weights from `relicgpu train-classifier` instead of clustering")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+
+
+def cli_main(args, name="group") -> int:
+    from .cli import CliError
+
+    log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
+    if name == "train-classifier":
+        if args.epochs < 1:
+            raise CliError(f"--epochs must be at least 1, got {args.epochs}")
+        from .io import load_fragment
+        files, labels = read_labels_csv(args.labels)
+        out = Path(args.out) if args.out else Path(args.labels).parent / "classifier.pt"
+        if out.resolve() in {f.resolve() for f in files} or out.resolve() == Path(args.labels).resolve():
+            raise CliError(f"{out}: the weights file must not be an input")
+        fragments = [load_fragment(f) for f in files]
+        t0 = time.perf_counter()
+        clf = train_classifier(fragments, labels, args.epochs, args.seed, progress=not args.quiet)
+        clf.save(out)
+        pred, _ = clf.predict(fragments)
+        acc = float(np.mean([p == l for p, l in zip(pred, labels)]))
+        log(f"{len(fragments)} fragments, {len(clf.classes)} classes; training accuracy {acc:.3f}, "
+            f"final loss {clf.history[-1]:.3f} ({time.perf_counter() - t0:.1f} s); wrote {out}")
+        return 0
+
+    src = Path(args.directory)
+    if not src.is_dir():
+        raise CliError(f"{src}: not a directory")
+    if Path(args.out).resolve() == src.resolve():
+        raise CliError(f"{args.out}: the output directory must not be the input directory")
+    if args.groups is not None and args.groups < 1:
+        raise CliError(f"--groups must be at least 1, got {args.groups}")
+    fragments = _load(src)
+    if args.classifier:
+        clf = Classifier.load(args.classifier)
+        pred, prob = clf.predict(fragments)
+        classes = sorted(set(pred), key=lambda c: (-pred.count(c), c))
+        doc = {"version": 1, "method": "classifier", "classes": classes,
+               "groups": [[fr.name for fr, p in zip(fragments, pred) if p == c] for c in classes],
+               "fragments": [{"file": fr.name, "group": classes.index(p), "label": p,
+                              "probability": float(pr.max())} for fr, p, pr in zip(fragments, pred, prob)]}
+    else:
+        g = group_fragments(fragments, args.groups, args.distance, args.min_silhouette, progress=not args.quiet)
+        doc = g.to_dict()
+    atomic_write_json(Path(args.out) / "groups.json", doc)
+    sizes = [len(x) for x in doc["groups"]]
+    log(f"{len(fragments)} fragments in {len(sizes)} group(s) of sizes {sizes}; wrote {Path(args.out) / 'groups.json'}")
+    return 0
