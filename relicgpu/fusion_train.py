@@ -465,6 +465,10 @@ def cli_main(args) -> int:
         raise CliError("--train-objects, --val-objects, --steps, --hidden and --fpr-exponent must be positive")
     cfg = replace(TrainConfig(), seed=args.seed, train_objects=args.train_objects, val_objects=args.val_objects,
                   steps=args.steps, hidden=args.hidden, fpr_exponent=args.fpr_exponent)
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        raise CliError("training needs torch: pip install 'relicgpu[train]'") from None
     log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     t0 = time.perf_counter()
     result = train(cfg, progress=not args.quiet, cache_dir=args.cache_dir, log=log)
