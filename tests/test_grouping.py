@@ -138,3 +138,23 @@ def test_train_classifier_cli(tmp_path, mixture):
     (tmp_path / "bad.pt").write_bytes(b"not torch")
     assert main(["group", str(tmp_path / "frags"), "-o", str(tmp_path / "g2"), "--classifier",
                  str(tmp_path / "bad.pt"), "--quiet"]) == 2
+
+
+def test_assemble_grouped_writes_objects(tmp_path):
+    frags, obj = [], {}
+    for k, (shape, scale, seed) in enumerate([("vase", 0.6, 11), ("slab", 1.5, 12)]):
+        r = synth.generate(shape, pieces=2, seed=seed, faces=300, progress=False)
+        for f in _scaled(r.fragments, scale, f"o{k}_"):
+            frags.append(f)
+            obj[f.name] = k
+    grouping, results = G.assemble_grouped(frags, tmp_path / "out", progress=False)
+    assert len(results) == 2
+    doc = json.loads((tmp_path / "out" / "assembly.json").read_text())
+    got = {e["file"]: e["object"] for e in doc["fragments"]}
+    assert G.adjusted_rand_index([obj[n] for n in got], list(got.values())) == pytest.approx(1.0)
+    # assembled groups never mix objects
+    pieces = {}
+    for e in doc["fragments"]:
+        pieces.setdefault(e["group"], set()).add(e["object"])
+    assert all(len(s) == 1 for s in pieces.values())
+    assert (tmp_path / "out" / "groups.json").exists() and (tmp_path / "out" / "object_0" / "assembly.json").exists()
