@@ -40,7 +40,7 @@ from .params import Params
 CACHE_VERSION = 1
 # Screening: each fragment keeps its TOP_K best partners by screening score; a pair
 # is matched in full when it is among the top k of either fragment (see docs/design.md).
-TOP_K = 4
+TOP_K = 8
 # Two placements of a fragment agree when its fracture points move less than this RMS
 # (a fraction of the working scale).
 LOOP_TOLERANCE = 0.02

@@ -257,9 +257,10 @@ def test_assemble_small_synthetic_object(local_result, synth_dir):
     assert [f["file"] for f in doc["fragments"]] == [f.name for f in frags]
 
 
-def test_mixed_directory_of_two_objects_gives_two_groups(tmp_path):
-    a = synth.generate(shape="vase", pieces=5, seed=1, faces=1000, progress=False)
-    b = synth.generate(shape="torso", pieces=5, seed=2, faces=1000, progress=False)
+@pytest.mark.parametrize("pieces", [3, pytest.param(5, marks=pytest.mark.slow)])
+def test_mixed_directory_of_two_objects_gives_two_groups(tmp_path, pieces):
+    a = synth.generate(shape="vase", pieces=pieces, seed=1, faces=1000, progress=False)
+    b = synth.generate(shape="torso", pieces=pieces, seed=2, faces=1000, progress=False)
     synth.write_many([a, b], tmp_path)
     frags = load_directory(tmp_path / "fragments")
     result = assemble(frags, backend="numpy", progress=False)
