@@ -47,7 +47,7 @@ class Params:
     descriptor_starts: int = 8       # ... poses kept
     max_patches: int = 3             # fracture patches per fragment tried face to face ...
     min_patch_share: float = 0.15    # ... if at least this share of the largest patch's area
-    patch_turns: int = 16            # turns about the common normal tried per patch pair
+    patch_turns: int = 12            # turns about the common normal tried per patch pair
     screen_points: int = 400         # points per start in the short batched ICP that ranks starts
     screen_iterations: int = 10      # ... for every start
     screen_keep: int = 24            # the best starts then run ...
@@ -55,8 +55,8 @@ class Params:
     screen_reject: float = 0.1       # pairs farther than this are left out of the ranking fits
 
     # ICP (Eq. 34-35, Alg. 5)
-    icp_points: int = 2500           # fracture points sampled per fragment
-    icp_iterations: int = 60
+    icp_points: int = 1500           # fracture points sampled per fragment
+    icp_iterations: int = 40
     icp_tolerance: float = 1e-5      # stop when the mean distance d changes less than this
     verify_at_most: int = 6          # fits verified per pair, best-touching first, until one is accepted
     plane_iterations: int = 8        # point-to-plane polish after ICP
