@@ -63,3 +63,23 @@ def test_match_cli_bad_input_is_one_line_and_exit_2(tmp_path):
     assert "broken.ply" in proc.stderr
     assert "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+@pytest.fixture(scope="module")
+def slab_pair():
+    r = synth.generate("slab", pieces=2, seed=4, faces=4000, noise=0.0005)
+    reference = match_pair(*r.fragments, backend="numpy")
+    assert reference.accepted
+    return r, reference
+
+
+def test_every_backend_gives_the_same_transform(slab_pair, device_backend):
+    r, reference = slab_pair
+    a, b = r.fragments
+    result = match_pair(a, b, backend=device_backend)
+    assert result.accepted, result.reason
+    size = 0.5 * (a.size + b.size)
+    assert rotation_angle_deg(result.transform[:3, :3] @ reference.transform[:3, :3].T) < 0.1
+    moved = b.vertices @ result.transform[:3, :3].T + result.transform[:3, 3]
+    ref_moved = b.vertices @ reference.transform[:3, :3].T + reference.transform[:3, 3]
+    assert np.sqrt(((moved - ref_moved) ** 2).sum(1).mean()) < 0.001 * size
