@@ -75,34 +75,36 @@ class MosaicError(FragmentError):
 
 @dataclass(frozen=True)
 class MosaicParams:
+    """Parameters of the mosaic. Defaults were chosen on pairs cut with seeds 1-4 of
+    scripts/bench_mosaic.py; the benchmark reports on seed 0."""
     median: int = 3                # 3.3.1: median filter size
-    norm_window: int = 15          # w of Eq. 1-3
+    norm_window: int = 31          # w of Eq. 1-3
     norm_mean: float = 128.0       # M^d = M_0^d of Eq. 2
-    norm_var: float = 48.0 ** 2    # VAR_0^d of Eq. 3
+    norm_var: float = 64.0 ** 2    # VAR_0^d of Eq. 3
     alpha1: float = 0.0            # Eq. 2
     alpha2: float = 0.0            # Eq. 3
-    norm_var_floor: float = 4.0 ** 2
+    norm_var_floor: float = 1.0    # VAR_i floor (gray levels^2) ...
+    noise_floor_k: float = 2.0     # ... raised to (k * the image's noise sigma)^2
     led_half: int = 8              # A of Eq. 4
     fcm_b: float = 2.0             # fuzzifier b of Eq. 5-6
-    fcm_tol: float = 1e-9          # convergence: centres move less than tol * (max D - min D)
+    fcm_tol: float = 1e-9          # convergence: no centre moves more than tol * (max D - min D)
     fcm_max_iter: int = 1000
     template_div: float = 8.0      # initial template width = image width / template_div
-    block: int = 8                 # entropy block size (pixels)
-    levels: int = 16               # gray levels for Eq. 8 (<= 64)
+    block: int = 6                 # entropy block size (pixels)
+    block_stride: int = 3          # spacing of the blocks in the template (= block: disjoint blocks)
+    levels: int = 6                # gray levels for Eq. 8 (<= 64)
+    soft_bins: bool = True         # split each pixel between its two nearest levels
     coarse_step: int = 2           # 3.4: a sub-window every 2 or 3 pixels
     fine_radius: int = 2           # 3.4: 5x5 fine search
-    cross_fraction: float = 0.5    # thickness of each bar of the cross, as a fraction of the template
-    cross_length: float = 1.0      # length of the vertical bar, in template widths
-    angles: tuple = (-1.5, -0.75, 0.0, 0.75, 1.5)  # degrees tried in the fine search
-    thre: float | None = None      # sequential-detection threshold; None = exact (see module doc)
+    cross_fraction: float = 0.8    # thickness of each bar of the cross, as a fraction of the template
+    angles: tuple = (-1.5, -0.75, 0.0, 0.75, 1.5)  # rotations (degrees) tried in the fine search
+    thre: float | None = None      # sequential-detection threshold; None: exact (see the module notes)
     min_overlap: float = 0.2       # the overlap is at least this fraction of the left image's width
     max_shift: float = 0.1         # perpendicular shift between neighbours, fraction of the height
     min_correlation: float = 0.8   # normalised correlation a match needs to be accepted
+    min_distinctness: float = 1.1  # T elsewhere (beyond a block) must exceed T at the match by this factor
+    min_isotropy: float = 0.1      # feature regions with a less isotropic gradient are skipped
     retries: int = 4               # further feature regions tried when a match is rejected
-    soft_bins: bool = False
-    noise_floor_k: float = 0.0
-    block_stride: int = 0
-    smooth_sigma: float = 0.0
 
 
 @dataclass
@@ -114,7 +116,9 @@ class PairMatch:
     offset: np.ndarray             # (2,) left_point - right_point: the right origin in left coordinates
     template_width: int
     cost: float                    # T at the match: summed |entropy difference| over the cross blocks
-    correlation: float             # normalised correlation of template and match (the acceptance check)
+    correlation: float             # normalised correlation of the feature area and its match (a check)
+    distinctness: float            # T of the best match elsewhere over T of this one (a check)
+    region_rank: int               # 0: the paper's feature region; k: the k-th next, when earlier ones failed
     fcm_centres: np.ndarray        # (3,) high, medium, low
     fcm_iterations: int
     timings: dict = field(default_factory=dict)
@@ -276,8 +280,15 @@ def noise_sigma(gray: np.ndarray) -> float:
 
 
 def median3(gray: np.ndarray, size: int = 3) -> np.ndarray:
-    """The 3x3 median filter of 3.3.1 (edges replicated by reflection)."""
-    return ndimage.median_filter(np.asarray(gray, np.float64), size=size, mode="reflect")
+    """The 3x3 median filter of 3.3.1, the border pixel repeated outside the image."""
+    img = np.asarray(gray, np.float64)
+    if size in (3, 5):
+        try:  # OpenCV's float32 median is some 30x faster than scipy's; same values
+            import cv2
+            return cv2.medianBlur(img.astype(np.float32), size).astype(np.float64)
+        except ImportError:
+            pass
+    return ndimage.median_filter(img, size=size, mode="nearest")
 
 
 def local_normalise(gray: np.ndarray, window: int = 15, mean0: float = 128.0, var0: float = 48.0 ** 2,
@@ -382,12 +393,14 @@ def quadratic_entropy(block_levels: np.ndarray, n_levels: int) -> float:
 
 
 def sequential_costs(template_h: np.ndarray, block_offsets: np.ndarray, hmap: np.ndarray,
-                     cand: np.ndarray, thre: float | None = None) -> np.ndarray:
+                     cand: np.ndarray, thre: float | None = None, slack: float = 1.0) -> np.ndarray:
     """T for each candidate top-left cand[i] = (y, x): sum over blocks k of
     |template_h[k] - hmap[y + oy_k, x + ox_k]|, adding blocks in order and dropping a
     candidate as soon as its running T passes `thre` (its T is then +inf).
-    thre=None: the full T of the candidate leading after a quarter of the blocks,
-    an upper bound of the minimum, so only candidates that cannot win are dropped."""
+    thre=None: `slack` times the full T of the candidate leading after a quarter of the
+    blocks. That is an upper bound of slack * (the minimum), so every candidate within
+    that factor of the minimum is kept with its exact T, and slack=1 drops only the
+    candidates that cannot win."""
     cand = np.asarray(cand, np.int64).reshape(-1, 2)
     n, k = len(cand), len(template_h)
     total = np.zeros(n)
@@ -401,7 +414,7 @@ def sequential_costs(template_h: np.ndarray, block_offsets: np.ndarray, hmap: np
             total += np.abs(template_h[j] - hmap[cand[:, 0] + block_offsets[j, 0], cand[:, 1] + block_offsets[j, 1]])
         lead = int(np.argmin(total))
         y, x = cand[lead]
-        thre = float(np.abs(template_h - hmap[y + block_offsets[:, 0], x + block_offsets[:, 1]]).sum())
+        thre = slack * float(np.abs(template_h - hmap[y + block_offsets[:, 0], x + block_offsets[:, 1]]).sum())
         thre += 1e-9 * (1.0 + thre)  # the running sums add in another order: keep the leader itself
         alive = alive[total <= thre]
     for j in range(start, k):
@@ -446,25 +459,21 @@ def _feature_geometry(width: int, height: int, p: MosaicParams):
     tw0 = int(round(max(width / p.template_div, 4 * p.block) / p.block)) * p.block
     band_left = int(np.floor(width * (1.0 - p.min_overlap)))
     margin = int(np.ceil(height * p.max_shift))
-    tall = _area_height(tw0, p)
-    cols = (band_left + tw0 // 2, width - (tw0 - tw0 // 2))
-    rows = (margin + tall // 2, height - margin - (tall - tall // 2))
+    half = tw0 // 2
+    cols = (band_left + half, width - (tw0 - half))
+    rows = (margin + half, height - margin - (tw0 - half))
     return tw0, cols, rows
-
-
-def _area_height(width: int, p: MosaicParams) -> int:
-    return max(width, int(round(p.cross_length * width)))
 
 
 def cross_blocks(width: int, p: MosaicParams) -> tuple[np.ndarray, tuple]:
     """Top-left corners, relative to the feature centre, of the blocks of the cross-shaped area
-    for a template `width` wide: a horizontal bar `width` long and a vertical bar `cross_length`
-    widths long, each `cross_fraction` of the width thick (at least one block), crossing at the
-    centre. Blocks lie on a `block_stride` grid over the bounding box and count when they fit
-    inside either bar. Returns (K, 2) offsets and the box (top, left, height, width)."""
+    of a template `width` wide: a horizontal and a vertical bar through the centre, each as long
+    as the template and `cross_fraction` of it thick (at least one block). Blocks lie on a
+    `block_stride` grid over the template and count when they fit inside either bar.
+    Returns (K, 2) offsets and the template box (top, left, height, width)."""
     b = p.block
     stride = p.block_stride or b
-    height = _area_height(width, p)
+    height = width
     top, left = -(height // 2), -(width // 2)
     thick = min(width, max(b, int(round(width * p.cross_fraction))))
     ys = np.arange(top, top + height - b + 1, stride)
@@ -503,8 +512,7 @@ def prepare_image(image: np.ndarray, params: MosaicParams | None = None) -> Prep
     floor = p.norm_var_floor
     if p.noise_floor_k > 0:
         floor = max(floor, (p.noise_floor_k * noise_sigma(gray)) ** 2)
-    base = ndimage.gaussian_filter(smoothed, p.smooth_sigma) if p.smooth_sigma > 0 else smoothed
-    normalised = local_normalise(base, p.norm_window, p.norm_mean, p.norm_var, p.alpha1, p.alpha2, floor)
+    normalised = local_normalise(smoothed, p.norm_window, p.norm_mean, p.norm_var, p.alpha1, p.alpha2, floor)
     return Prepared(gray, smoothed, normalised, quantise(normalised, p.levels, p.soft_bins))
 
 
@@ -549,9 +557,8 @@ def find_feature_regions(left: Prepared, params: MosaicParams | None = None, bac
         iy, ix = np.unravel_index(int(np.argmax(score_band)), score_band.shape)
         cy, cx = r0 + iy, c0 + ix
         tw = template_width(tw0, dmap[cy, cx], c_high)
-        room_w = 2 * min(cx - band_left, wl - 1 - cx) + 1
-        room_h = (2 * min(cy - margin, hl - 1 - margin - cy) + 1) / max(1.0, p.cross_length)
-        tw = max(tw0, int(min(tw, room_w, room_h) // p.block) * p.block)
+        room = 2 * min(cx - band_left, wl - 1 - cx, cy - margin, hl - 1 - margin - cy) + 1
+        tw = max(tw0, int(min(tw, room) // p.block) * p.block)
         regions.append(FeatureRegion((int(cy), int(cx)), int(tw), dmap, fcm, fcm.centres[order]))
         score_band[np.maximum(np.abs(yy - cy), np.abs(xx - cx)) < tw0] = -np.inf
     return regions
@@ -576,11 +583,20 @@ def _sample_box(image: np.ndarray, centre, box, angle_deg: float) -> np.ndarray:
     return ndimage.map_coordinates(np.asarray(image, np.float64), [ry, rx], order=1, mode="nearest")
 
 
+@dataclass
+class EntropyMatch:
+    """The result of 3.4 for one feature region."""
+    row: float              # where the feature centre lies in the right image (sub-pixel)
+    col: float
+    angle: float            # degrees: the rotation of the template that matched best
+    cost: float             # T at the best integer position
+    distinctness: float     # T of the best coarse position farther than a block away, over T of the best
+
+
 def match_entropy(left: Prepared, right: Prepared, region: FeatureRegion, params: MosaicParams | None = None,
-                  backend="numpy", names=("left", "right")):
+                  backend="numpy", names=("left", "right"), hmap: np.ndarray | None = None) -> EntropyMatch:
     """3.4: coarse then fine local-entropy matching of the cross-shaped feature area in the
-    right image. Returns (row, col, angle, cost): where the feature centre lies in the right
-    image, the rotation (degrees) that matched best and T there."""
+    right image. `hmap` is the block-entropy map of the right image when already computed."""
     p = params or MosaicParams()
     cy, cx = region.centre
     hr, wr = right.gray.shape
@@ -592,7 +608,8 @@ def match_entropy(left: Prepared, right: Prepared, region: FeatureRegion, params
     if y_lo > y_hi or x_lo > x_hi:
         raise MosaicError(f"{names[1]}: image too small ({wr}x{hr} px) for the {box[3]}x{box[2]}-px feature area "
                           f"of {names[0]}")
-    hmap = np.asarray(block_entropy(right.levels, p.block, p.levels, backend), np.float64)
+    if hmap is None:
+        hmap = np.asarray(block_entropy(right.levels, p.block, p.levels, backend), np.float64)
 
     def template_entropies(angle):
         top, left_ = box[0], box[1]
@@ -603,35 +620,72 @@ def match_entropy(left: Prepared, right: Prepared, region: FeatureRegion, params
         dense = _block_entropy_numpy(patch, p.block, p.levels)
         return dense[offsets[:, 0] - top, offsets[:, 1] - left_]
 
+    def grid(ys, xs):
+        return np.stack(np.meshgrid(ys, xs, indexing="ij"), -1).reshape(-1, 2)
+
+    # coarse: a sub-window every coarse_step pixels, sequential detection. Candidates within
+    # min_distinctness times the best keep their exact T, to measure how distinct the best is.
     h0 = template_entropies(0.0)
-    ys = np.arange(y_lo, y_hi + 1, p.coarse_step)
-    xs = np.arange(x_lo, x_hi + 1, p.coarse_step)
-    cand = np.stack(np.meshgrid(ys, xs, indexing="ij"), -1).reshape(-1, 2)
-    coarse = sequential_costs(h0, offsets, hmap, cand, p.thre)
+    cand = grid(np.arange(y_lo, y_hi + 1, p.coarse_step), np.arange(x_lo, x_hi + 1, p.coarse_step))
+    coarse = sequential_costs(h0, offsets, hmap, cand, p.thre, max(1.0, p.min_distinctness))
     if not np.isfinite(coarse).any():
         raise MosaicError(f"{names[0]} and {names[1]}: no overlap found (every sub-window passed the threshold)")
-    by, bx = cand[int(np.argmin(coarse))]
+    ib = int(np.argmin(coarse))
+    by, bx = cand[ib]
+    far = np.abs(cand - cand[ib]).max(1) > max(p.block, 2 * p.coarse_step)
+    second = coarse[far].min() if far.any() else np.inf
+    distinct = float(second / coarse[ib]) if coarse[ib] > 0 else (np.inf if second > 0 else 1.0)
+
     # fine: pixel by pixel in a (2r+1)^2 window at each angle; a best on the window's edge
     # means the minimum lies beyond it, so the window moves there (a few times at most)
     templates = {a: (h0 if a == 0 else template_entropies(a)) for a in p.angles}
     r = p.fine_radius
     best = (np.inf, 0.0, int(by), int(bx))
     for _ in range(4):
-        cy_, cx_ = best[2], best[3]
-        fy = np.arange(max(cy_ - r, y_lo), min(cy_ + r, y_hi) + 1)
-        fx = np.arange(max(cx_ - r, x_lo), min(cx_ + r, x_hi) + 1)
-        fine_cand = np.stack(np.meshgrid(fy, fx, indexing="ij"), -1).reshape(-1, 2)
+        y0, x0 = best[2], best[3]
+        fine = grid(np.arange(max(y0 - r, y_lo), min(y0 + r, y_hi) + 1),
+                    np.arange(max(x0 - r, x_lo), min(x0 + r, x_hi) + 1))
         for angle, ht in templates.items():
-            costs = sequential_costs(ht, offsets, hmap, fine_cand, None)
+            costs = sequential_costs(ht, offsets, hmap, fine)
             i = int(np.argmin(costs))
             if costs[i] < best[0]:
-                best = (float(costs[i]), float(angle), int(fine_cand[i][0]), int(fine_cand[i][1]))
-        inner_y = best[2] in (cy_ - r, cy_ + r) and y_lo < best[2] < y_hi
-        inner_x = best[3] in (cx_ - r, cx_ + r) and x_lo < best[3] < x_hi
-        if not (inner_y or inner_x):
+                best = (float(costs[i]), float(angle), int(fine[i][0]), int(fine[i][1]))
+        on_edge = (best[2] in (y0 - r, y0 + r) and y_lo < best[2] < y_hi) or \
+                  (best[3] in (x0 - r, x0 + r) and x_lo < best[3] < x_hi)
+        if not on_edge:
             break
     cost, angle, my, mx = best
-    return my, mx, angle, cost
+
+    # sub-pixel: the vertex of the parabola through T at the best and its two neighbours, per axis
+    ht = templates[angle]
+    sub = [float(my), float(mx)]
+    for axis, (lo, hi) in enumerate([(y_lo, y_hi), (x_lo, x_hi)]):
+        pos = (my, mx)[axis]
+        if lo < pos < hi:
+            step = np.zeros(2, np.int64)
+            step[axis] = 1
+            c_minus, c_plus = sequential_costs(ht, offsets, hmap, np.array([(my, mx) - step, (my, mx) + step]),
+                                               np.inf)
+            curv = c_minus - 2.0 * cost + c_plus
+            if curv > 0:
+                sub[axis] += float(np.clip(0.5 * (c_minus - c_plus) / curv, -0.5, 0.5))
+    return EntropyMatch(sub[0], sub[1], angle, cost, distinct)
+
+
+def isotropy(image: np.ndarray, centre, width: int) -> float:
+    """Smaller over larger eigenvalue of the gradient structure tensor of the width x width
+    window at centre: near 0 for a straight edge or parallel bands, which match themselves
+    anywhere along their length (the aperture problem), up to 1 for corners and texture."""
+    h = width // 2
+    y0, x0 = max(centre[0] - h, 0), max(centre[1] - h, 0)
+    win = np.asarray(image, np.float64)[y0:centre[0] - h + width, x0:centre[1] - h + width]
+    if min(win.shape) < 3:
+        return 0.0
+    gy, gx = ndimage.sobel(win, 0), ndimage.sobel(win, 1)
+    a, b, c = (gx * gx).sum(), (gx * gy).sum(), (gy * gy).sum()
+    root = np.sqrt(((a - c) / 2.0) ** 2 + b * b)
+    big, small = (a + c) / 2.0 + root, (a + c) / 2.0 - root
+    return float(small / big) if big > 0 else 0.0
 
 
 def match_correlation(left: Prepared, right: Prepared, region: FeatureRegion, right_point, angle: float,
@@ -659,24 +713,34 @@ def register_pair(left, right, params: MosaicParams | None = None, backend="nump
     regions = find_feature_regions(pl, p, backend, names[0], 1 + p.retries)
     timings["feature_region"] = time.perf_counter() - t
     t = time.perf_counter()
-    tried = []
+    hmap = np.asarray(block_entropy(pr.levels, p.block, p.levels, backend), np.float64)
+    timings["entropy_map"] = time.perf_counter() - t
+    t = time.perf_counter()
+    faults = []
     for region in regions:
-        my, mx, angle, cost = match_entropy(pl, pr, region, p, backend, names)
-        corr = match_correlation(pl, pr, region, (my, mx), angle, p)
-        tried.append(corr)
-        if corr >= p.min_correlation:
+        iso = isotropy(pl.smoothed, region.centre, region.width)
+        if iso < p.min_isotropy:
+            faults.append(f"edge-like feature region (isotropy {iso:.2f} < {p.min_isotropy})")
+            continue
+        em = match_entropy(pl, pr, region, p, backend, names, hmap)
+        corr = match_correlation(pl, pr, region, (em.row, em.col), em.angle, p)
+        if em.distinctness < p.min_distinctness:
+            faults.append(f"ambiguous (another place matches within {em.distinctness - 1:.0%})")
+        elif corr < p.min_correlation:
+            faults.append(f"correlation {corr:.2f} < {p.min_correlation}")
+        else:
             break
+    else:
+        raise MosaicError(f"{names[0]} and {names[1]}: no overlap found: the best match of each of the "
+                          f"{len(regions)} feature regions was rejected ({'; '.join(sorted(set(faults)))}); the "
+                          f"overlap must be at least {p.min_overlap:.0%} of the width")
     timings["match"] = time.perf_counter() - t
-    if corr < p.min_correlation:
-        raise MosaicError(f"{names[0]} and {names[1]}: no overlap found (the best match of each of {len(tried)} "
-                          f"feature regions correlates at most {max(tried):.2f} < {p.min_correlation}; the overlap "
-                          f"must be at least {p.min_overlap:.0%} of the width)")
     left_point = np.array(region.centre, np.float64)
-    right_point = np.array([my, mx], np.float64)
+    right_point = np.array([em.row, em.col], np.float64)
+    angle, cost = em.angle, em.cost
     timings["total"] = time.perf_counter() - t0
     return PairMatch(left_point, right_point, angle, left_point - right_point, region.width, cost, corr,
-                     region.centres,
-                     region.fcm.iterations, timings)
+                     em.distinctness, len(faults), region.centres, region.fcm.iterations, timings)
 
 
 # --- stitching -------------------------------------------------------------------

@@ -9,7 +9,16 @@ from scipy import ndimage
 
 from relicgpu import mosaic as M
 
-# --- Eq. 1-3: local normalisation ----------------------------------------------------
+# --- 3.3.1: median filter, Eq. 1-3: local normalisation -------------------------------
+
+
+def test_median3_against_scipy():
+    rng = np.random.default_rng(5)
+    img = rng.random((31, 40)) * 255
+    want = ndimage.median_filter(img, size=3, mode="nearest")
+    np.testing.assert_allclose(M.median3(img), want, atol=1e-4)  # float32 inside
+    img[10, 10] = 1e4  # an impulse is removed
+    assert M.median3(img)[10, 10] < 256
 
 
 def test_eq1_above_the_local_mean():
@@ -231,3 +240,145 @@ def test_block_entropy_rejects_bad_levels():
         M.block_entropy(np.zeros((4, 4)), 2, 65)
     with pytest.raises(ValueError):
         M.block_entropy(np.zeros((3, 4)), 4, 8)
+
+
+# --- registration and stitching on a sample photograph ------------------------------------
+
+
+def _photo(name="astronaut"):
+    import skimage.data
+    return getattr(skimage.data, name)()
+
+
+def _crop(img, origin, shape, angle_deg=0.0):
+    """img[origin + c + R(angle) (q - c)] for q over a crop of `shape` (c its centre), bilinear."""
+    h, w = shape
+    c = np.array([(h - 1) / 2.0, (w - 1) / 2.0])
+    qy, qx = np.mgrid[0:h, 0:w].astype(np.float64)
+    a = np.deg2rad(angle_deg)
+    sy = origin[0] + c[0] + np.cos(a) * (qy - c[0]) + np.sin(a) * (qx - c[1])
+    sx = origin[1] + c[1] - np.sin(a) * (qy - c[0]) + np.cos(a) * (qx - c[1])
+    chans = [img] if img.ndim == 2 else [img[..., k] for k in range(img.shape[2])]
+    out = [ndimage.map_coordinates(ch.astype(np.float64), [sy, sx], order=1, mode="reflect") for ch in chans]
+    return out[0] if img.ndim == 2 else np.stack(out, -1)
+
+
+def _truth(origin_left, origin_right, shape, angle_deg, left_point):
+    h, w = shape
+    c = np.array([(h - 1) / 2.0, (w - 1) / 2.0])
+    d = np.asarray(origin_left, float) + left_point - np.asarray(origin_right, float) - c
+    a = np.deg2rad(angle_deg)
+    return c + np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ d
+
+
+def _u8(a):
+    return np.clip(np.rint(a), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("name,origin_left,origin_right,angle,noise,gain,bias", [
+    ("camera", (100, 20), (110, 190), 0.0, 2.0, 1.0, 0.0),
+    ("astronaut", (100, 20), (95, 150), 1.2, 4.0, 0.85, 20.0),
+    ("coffee", (60, 40), (70, 250), -1.6, 5.0, 1.15, -15.0),
+])
+def test_register_pair_within_a_pixel(name, origin_left, origin_right, angle, noise, gain, bias):
+    img = _photo(name)
+    rng = np.random.default_rng(7)
+    shape = (300, 300)
+    left = _u8(_crop(img, origin_left, shape) + rng.normal(0, noise, shape + img.shape[2:]))
+    right = _u8(gain * _crop(img, origin_right, shape, angle) + bias + rng.normal(0, noise, shape + img.shape[2:]))
+    pm = M.register_pair(left, right)
+    truth = _truth(origin_left, origin_right, shape, angle, pm.left_point)
+    assert np.abs(pm.right_point - truth).max() <= 1.0
+    assert abs(pm.angle - angle) <= 1.0
+    assert pm.correlation >= M.MosaicParams().min_correlation
+
+
+def test_stitch_three_photographs_back_into_one():
+    img = _photo("astronaut")
+    shape = (260, 220)
+    origins = [(60, 10), (66, 150), (58, 280)]
+    parts = [img[y:y + shape[0], x:x + shape[1]] for y, x in origins]
+    result = M.stitch(parts, backend="numpy")
+    assert isinstance(result, M.Mosaic)
+    rel = result.offsets - result.offsets[0]
+    np.testing.assert_allclose(rel, np.array(origins, float) - origins[0], atol=1.0)
+    np.testing.assert_allclose(result.angles, 0.0, atol=1.0)
+    # where the mosaic is covered it reproduces the photograph
+    top = int(round(result.offsets[0][0])) - origins[0][0]
+    left0 = int(round(result.offsets[0][1])) - origins[0][1]
+    y0, y1 = 66, 60 + shape[0]
+    x0, x1 = 10, 280 + shape[1]
+    got = result.image[y0 + top:y1 + top, x0 + left0:x1 + left0].astype(float)
+    want = img[y0:y1, x0:x1].astype(float)
+    assert result.image.dtype == np.uint8 and result.image.shape[2] == 3
+    assert np.abs(got - want).mean() < 4.0
+
+
+def test_stitch_vertical_sequence():
+    img = _photo("camera")
+    parts = [img[20:220, 100:400], img[150:350, 96:396]]
+    result = M.stitch([p for p in parts], backend="numpy", vertical=True)
+    np.testing.assert_allclose(result.offsets[1] - result.offsets[0], [130.0, -4.0], atol=1.0)
+
+
+def test_no_overlap_is_an_error():
+    img = _photo("camera")
+    left = img[50:350, 0:250]
+    right = _photo("coins")[0:300, 0:250]
+    with pytest.raises(M.MosaicError, match="no overlap found|no edges"):
+        M.register_pair(left, right, names=("a.png", "b.png"))
+
+
+def test_too_small_is_an_error():
+    with pytest.raises(M.MosaicError, match="too small"):
+        M.register_pair(np.zeros((30, 40), np.uint8), np.zeros((30, 40), np.uint8))
+    with pytest.raises(M.MosaicError, match="at least two"):
+        M.stitch([np.zeros((300, 300), np.uint8)])
+
+
+# --- command line ---------------------------------------------------------------------------
+
+
+def _write_png(path, array):
+    from PIL import Image
+    Image.fromarray(array).save(path)
+    return str(path)
+
+
+def test_cli_stitches_and_refuses_bad_input(tmp_path, capsys):
+    from PIL import Image
+
+    from relicgpu.cli import main
+    img = _photo("astronaut")
+    a = _write_png(tmp_path / "a.png", img[40:300, 0:260])
+    b = _write_png(tmp_path / "b.png", img[44:304, 170:430])
+    out = tmp_path / "out" / "mosaic.png"
+    assert main(["mosaic", a, b, "-o", str(out), "--backend", "numpy"]) == 0
+    stitched = np.asarray(Image.open(out))
+    assert stitched.shape[1] == pytest.approx(430, abs=2) and stitched.shape[0] == pytest.approx(264, abs=2)
+    assert not list(out.parent.glob(".*.tmp"))  # atomic: no temporary left behind
+
+    assert main(["mosaic", a, str(tmp_path / "missing.png"), "-o", str(out)]) == 2
+    assert "missing.png: no such file" in capsys.readouterr().err
+    bad = tmp_path / "bad.png"
+    bad.write_text("not an image")
+    assert main(["mosaic", a, str(bad), "-o", str(out)]) == 2
+    assert "bad.png: cannot read as an image" in capsys.readouterr().err
+    assert main(["mosaic", a, b, "-o", a]) == 2
+    assert "refusing to overwrite an input" in capsys.readouterr().err
+    tiny = _write_png(tmp_path / "tiny.png", img[:20, :20])
+    assert main(["mosaic", tiny, b, "-o", str(out)]) == 2
+    assert "too small" in capsys.readouterr().err
+    assert main(["mosaic", a, "-o", str(out)]) == 2
+    assert main(["mosaic", a, b, "-o", str(tmp_path / "out.xyz")]) == 2
+    assert "unknown image suffix" in capsys.readouterr().err
+
+
+def test_isotropy_tells_edges_from_corners():
+    y, x = np.mgrid[0:40, 0:40]
+    edge = (x > 20).astype(float) * 100
+    corner = ((x > 20) & (y > 20)).astype(float) * 100
+    checker = (((x // 5) + (y // 5)) % 2).astype(float) * 100
+    assert M.isotropy(edge, (20, 20), 30) < 0.01
+    assert M.isotropy(corner, (20, 20), 30) > 0.3
+    assert M.isotropy(checker, (20, 20), 30) > 0.8
