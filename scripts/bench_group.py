@@ -93,15 +93,66 @@ def mixture(seed, faces, cache):
     return [frags[i] for i in order], [labels[i] for i in order]
 
 
+def _score(assemblies, fragments, objects, true_poses, touching):
+    """Part accuracy (relicgpu.evaluate) of one or several Assemblies over the whole mixture."""
+    from relicgpu.evaluate import score
+
+    index = {f.name: i for i, f in enumerate(fragments)}
+    poses, groups, used = [None] * len(fragments), [0] * len(fragments), []
+    offset = 0
+    for a in assemblies:
+        for name, pose, g in zip(a.names, a.poses, a.groups):
+            poses[index[name]], groups[index[name]] = pose, g + offset
+        used += [(index[a.names[m.a]], index[a.names[m.b]], np.asarray(m.transform)) for m in a.matches if m.used]
+        offset += max(a.groups) + 1
+    return score([f.vertices for f in fragments], poses, groups, true_poses, touching, used, objects)
+
+
+def bench_assembly(faces: int) -> None:
+    """assemble_grouped vs assembling the heap at once vs each object alone (known answer)."""
+    from relicgpu.assembly import assemble
+
+    fragments, objects, true_poses, touching = [], [], [], []
+    for k, (shape, seed) in enumerate([("vase", 501), ("torso", 502), ("slab", 503)]):
+        r = synth.generate(shape, pieces=4, seed=seed, faces=faces, progress=False)
+        base = len(fragments)
+        fragments += [Fragment(f"o{k}_{f.name}", f.vertices, f.faces) for f in r.fragments]
+        objects += [k] * len(r.fragments)
+        true_poses += list(r.poses)
+        touching += [(base + i, base + j) for i, j in r.touching]
+    rows = []
+    t0 = time.perf_counter()
+    alone = [assemble([f for f, o in zip(fragments, objects) if o == k], progress=False) for k in range(3)]
+    rows.append(("each object alone (truth)", time.perf_counter() - t0, _score(alone, fragments, objects, true_poses,
+                                                                             touching)))
+    t0 = time.perf_counter()
+    grouping, results = G.assemble_grouped(fragments, progress=False)
+    t_grouped = time.perf_counter() - t0
+    rows.append((f"assemble_grouped ({len(grouping.groups)} groups)", t_grouped,
+                 _score([r for r in results if r is not None], fragments, objects, true_poses, touching)))
+    t0 = time.perf_counter()
+    whole = assemble(fragments, progress=False)
+    rows.append(("whole heap at once", time.perf_counter() - t0, _score([whole], fragments, objects, true_poses,
+                                                                       touching)))
+    print(f"\nAssembly of a 3-object mixture (vase, torso, slab; 4 pieces of ~{faces} faces each; "
+          f"grouping ARI {G.adjusted_rand_index(objects, [grouping.labels[grouping.names.index(f.name)] for f in fragments]):.3f})")
+    print(f"{'run':<34} {'seconds':>7} {'part acc':>8} {'pair prec':>9} {'pair rec':>8}")
+    for name, t, sc in rows:
+        print(f"{name:<34} {t:>7.1f} {sc.part_accuracy:>8.3f} {sc.pair_precision:>9.3f} {sc.pair_recall:>8.3f}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--train-seeds", type=int, nargs="+", default=[1000, 1001, 1002, 1003, 1004])
     ap.add_argument("--train-pieces", type=int, default=7)
     ap.add_argument("--faces", type=int, default=600, help="faces per fragment (default: 600)")
-    ap.add_argument("--epochs", type=int, default=120)
+    ap.add_argument("--epochs", type=int, default=100)
     ap.add_argument("--cache", default="/tmp/relicgpu_bench_group", help="synth cache ('' for none)")
     ap.add_argument("--no-supervised", action="store_true")
+    ap.add_argument("--assembly", action="store_true",
+                    help="also: assemble a 3-object mixture with grouping, without, and each object alone")
+    ap.add_argument("--assembly-faces", type=int, default=2000, help="faces per fragment there (default: 2000)")
     args = ap.parse_args(argv)
     cache = Path(args.cache) if args.cache else None
 
@@ -126,6 +177,8 @@ def main(argv=None) -> int:
     aris = [r[4] for r in rows]
     print(f"mean ARI {np.mean(aris):.3f}, min {np.min(aris):.3f} (goal: >= 0.9)")
 
+    if args.assembly:
+        bench_assembly(args.assembly_faces)
     if args.no_supervised:
         return 0
     t0 = time.perf_counter()
