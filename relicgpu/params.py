@@ -66,7 +66,7 @@ class Params:
     contact_distance: float = 0.01   # a point within this of the other fracture surface is in contact
     min_overlap: float = 0.25        # share of the smaller fracture surface in contact
     max_rmse: float = 0.0028         # RMS point-to-plane distance over the contact
-    max_penetration: float = 0.03    # share of surface points deeper than penetration_depth inside the other
+    max_penetration: float = 0.06    # share of surface points deeper than penetration_depth inside the other
     penetration_depth: float = 0.015
 
     def with_(self, **changes) -> "Params":

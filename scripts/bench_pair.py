@@ -57,7 +57,7 @@ def main(argv=None) -> int:
                 stages.setdefault(k, []).append(m.timings[k])
             stages.setdefault("total", []).append((t1 - t0) + (t2 - t1))
         rot = rotation_angle_deg(m.transform[:3, :3] @ truth[:3, :3].T)
-        row = {"shape": shape, "vertices": [len(a.vertices), len(b.vertices)], "paper_vertices": [va, vb],
+        row = {"shape": shape, "vertices": [len(a.vertices), len(b.vertices)], "paper_vertices": [va, vb], "reason": m.reason,
                "paper_ms": paper_ms, "accepted": bool(m.accepted), "rotation_error_deg": rot,
                "ms": {k: 1000 * statistics.median(v) for k, v in stages.items()}}
         rows.append(row)
