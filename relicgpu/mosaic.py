@@ -77,6 +77,10 @@ scripts/bench_mosaic.py with seeds 1-4; the benchmark reports seed 0.
   centres, a template width apart) are tried before "no overlap found".
 - Offsets are exact at the feature point; with a rotation there is no single
   translation, so the composite rotates the right image about that point.
+- Large photographs (an addition): images over `max_size` pixels are registered
+  on copies shrunk by an integer factor f, then the fine search alone runs at full
+  resolution, f + 2 pixels either way, on crops around the two areas (a 2800 x
+  2000 pair: about 1 s instead of minutes).
 """
 from __future__ import annotations
 
@@ -126,6 +130,7 @@ class MosaicParams:
     min_distinctness: float = 1.1  # T elsewhere (beyond a block) must exceed T at the match by this factor
     min_isotropy: float = 0.1      # feature regions with a less isotropic gradient are skipped
     retries: int = 4               # further feature regions tried when a match is rejected
+    max_size: int = 1000           # larger images are registered shrunk, then refined at full size
 
 
 @dataclass
@@ -615,22 +620,40 @@ class EntropyMatch:
 
 
 def match_entropy(left: Prepared, right: Prepared, region: FeatureRegion, params: MosaicParams | None = None,
-                  backend="numpy", names=("left", "right"), hmap: np.ndarray | None = None) -> EntropyMatch:
+                  backend="numpy", names=("left", "right"), hmap: np.ndarray | None = None,
+                  start=None, radius: int | None = None) -> EntropyMatch:
     """3.4: coarse then fine local-entropy matching of the cross-shaped feature area in the
-    right image. `hmap` is the block-entropy map of the right image when already computed."""
+    right image. `hmap` is the block-entropy map of the right image when already computed.
+    With `start` (row, col) the coarse stage is skipped and the fine search starts there,
+    `radius` pixels either way (the block entropies are then computed around it only)."""
     p = params or MosaicParams()
     cy, cx = region.centre
     hr, wr = right.gray.shape
     offsets, box = cross_blocks(region.width, p)
-    # the perpendicular shift is at most max_shift of the height (the band was chosen on that premise)
-    shift = int(np.ceil(p.max_shift * left.gray.shape[0]))
-    y_lo, y_hi = max(-offsets[:, 0].min(), cy - shift), min(hr - p.block - offsets[:, 0].max(), cy + shift)
+    y_lo, y_hi = -offsets[:, 0].min(), hr - p.block - offsets[:, 0].max()
     x_lo, x_hi = -offsets[:, 1].min(), wr - p.block - offsets[:, 1].max()
+    if start is None:
+        # the perpendicular shift is at most max_shift of the height (the band was chosen on that premise)
+        shift = int(np.ceil(p.max_shift * left.gray.shape[0]))
+        y_lo, y_hi = max(y_lo, cy - shift), min(y_hi, cy + shift)
+    else:
+        r0 = int(radius if radius is not None else p.fine_radius)
+        sy, sx = int(round(start[0])), int(round(start[1]))
+        y_lo, y_hi = max(y_lo, sy - r0), min(y_hi, sy + r0)
+        x_lo, x_hi = max(x_lo, sx - r0), min(x_hi, sx + r0)
     if y_lo > y_hi or x_lo > x_hi:
         raise MosaicError(f"{names[1]}: image too small ({wr}x{hr} px) for the {box[3]}x{box[2]}-px feature area "
                           f"of {names[0]}")
+    origin = np.zeros(2, np.int64)  # hmap[i, j] is the block whose top-left is origin + (i, j)
     if hmap is None:
-        hmap = np.asarray(block_entropy(right.levels, p.block, p.levels, backend), np.float64)
+        if start is None:
+            hmap = np.asarray(block_entropy(right.levels, p.block, p.levels, backend), np.float64)
+        else:
+            origin = np.array([y_lo + offsets[:, 0].min(), x_lo + offsets[:, 1].min()])
+            end = (y_hi + offsets[:, 0].max() + p.block, x_hi + offsets[:, 1].max() + p.block)
+            hmap = np.asarray(block_entropy(right.levels[origin[0]:end[0], origin[1]:end[1]], p.block, p.levels,
+                                            backend), np.float64)
+    local = offsets - origin  # candidate + local indexes hmap
 
     def template_entropies(angle):
         top, left_ = box[0], box[1]
@@ -644,18 +667,22 @@ def match_entropy(left: Prepared, right: Prepared, region: FeatureRegion, params
     def grid(ys, xs):
         return np.stack(np.meshgrid(ys, xs, indexing="ij"), -1).reshape(-1, 2)
 
-    # coarse: a sub-window every coarse_step pixels, sequential detection. Candidates within
-    # min_distinctness times the best keep their exact T, to measure how distinct the best is.
     h0 = template_entropies(0.0)
-    cand = grid(np.arange(y_lo, y_hi + 1, p.coarse_step), np.arange(x_lo, x_hi + 1, p.coarse_step))
-    coarse = sequential_costs(h0, offsets, hmap, cand, p.thre, max(1.0, p.min_distinctness))
-    if not np.isfinite(coarse).any():
-        raise MosaicError(f"{names[0]} and {names[1]}: no overlap found (every sub-window passed the threshold)")
-    ib = int(np.argmin(coarse))
-    by, bx = cand[ib]
-    far = np.abs(cand - cand[ib]).max(1) > max(p.block, 2 * p.coarse_step)
-    second = coarse[far].min() if far.any() else np.inf
-    distinct = float(second / coarse[ib]) if coarse[ib] > 0 else (np.inf if second > 0 else 1.0)
+    if start is None:
+        # coarse: a sub-window every coarse_step pixels, sequential detection. Candidates within
+        # min_distinctness times the best keep their exact T, to measure how distinct the best is.
+        cand = grid(np.arange(y_lo, y_hi + 1, p.coarse_step), np.arange(x_lo, x_hi + 1, p.coarse_step))
+        coarse = sequential_costs(h0, local, hmap, cand, p.thre, max(1.0, p.min_distinctness))
+        if not np.isfinite(coarse).any():
+            raise MosaicError(f"{names[0]} and {names[1]}: no overlap found (every sub-window passed the threshold)")
+        ib = int(np.argmin(coarse))
+        by, bx = cand[ib]
+        far = np.abs(cand - cand[ib]).max(1) > max(p.block, 2 * p.coarse_step)
+        second = coarse[far].min() if far.any() else np.inf
+        distinct = float(second / coarse[ib]) if coarse[ib] > 0 else (np.inf if second > 0 else 1.0)
+    else:
+        by, bx = min(max(sy, y_lo), y_hi), min(max(sx, x_lo), x_hi)
+        distinct = np.inf  # not measured here
 
     # fine: pixel by pixel in a (2r+1)^2 window at each angle; a best on the window's edge
     # means the minimum lies beyond it, so the window moves there (a few times at most)
@@ -667,7 +694,7 @@ def match_entropy(left: Prepared, right: Prepared, region: FeatureRegion, params
         fine = grid(np.arange(max(y0 - r, y_lo), min(y0 + r, y_hi) + 1),
                     np.arange(max(x0 - r, x_lo), min(x0 + r, x_hi) + 1))
         for angle, ht in templates.items():
-            costs = sequential_costs(ht, offsets, hmap, fine)
+            costs = sequential_costs(ht, local, hmap, fine)
             i = int(np.argmin(costs))
             if costs[i] < best[0]:
                 best = (float(costs[i]), float(angle), int(fine[i][0]), int(fine[i][1]))
@@ -685,7 +712,7 @@ def match_entropy(left: Prepared, right: Prepared, region: FeatureRegion, params
         if lo < pos < hi:
             step = np.zeros(2, np.int64)
             step[axis] = 1
-            c_minus, c_plus = sequential_costs(ht, offsets, hmap, np.array([(my, mx) - step, (my, mx) + step]),
+            c_minus, c_plus = sequential_costs(ht, local, hmap, np.array([(my, mx) - step, (my, mx) + step]),
                                                np.inf)
             curv = c_minus - 2.0 * cost + c_plus
             if curv > 0:
@@ -720,15 +747,27 @@ def match_correlation(left: Prepared, right: Prepared, region: FeatureRegion, ri
     return _ncc(a, b)
 
 
+def _block_mean(gray: np.ndarray, factor: int) -> np.ndarray:
+    """Mean of factor x factor blocks (the ragged last rows and columns dropped)."""
+    h, w = gray.shape[0] // factor * factor, gray.shape[1] // factor * factor
+    return gray[:h, :w].reshape(h // factor, factor, w // factor, factor).mean((1, 3))
+
+
 def register_pair(left, right, params: MosaicParams | None = None, backend="numpy",
                   names=("left", "right")) -> PairMatch:
     """Find where `right` sits against `left` (arrays, gray or colour), the right image
-    overlapping the right part of the left one. Raises MosaicError when it cannot."""
+    overlapping the right part of the left one. Raises MosaicError when it cannot.
+
+    Images larger than `max_size` are registered on copies shrunk by an integer factor f
+    (block means), and the match is then refined at full resolution by the fine search
+    alone, f + fine_radius pixels either way; the checks are those of the shrunk copies."""
     p = params or MosaicParams()
     t0 = time.perf_counter()
     timings = {}
-    pl = left if isinstance(left, Prepared) else prepare_image(left, p)
-    pr = right if isinstance(right, Prepared) else prepare_image(right, p)
+    gl, gr = to_gray(left), to_gray(right)
+    f = max(1, int(np.ceil(max(gl.shape + gr.shape) / p.max_size)))
+    pl = prepare_image(_block_mean(gl, f) if f > 1 else gl, p)
+    pr = prepare_image(_block_mean(gr, f) if f > 1 else gr, p)
     timings["preprocess"] = time.perf_counter() - t0
     t = time.perf_counter()
     regions = find_feature_regions(pl, p, backend, names[0], 1 + p.retries)
@@ -755,12 +794,31 @@ def register_pair(left, right, params: MosaicParams | None = None, backend="nump
         raise MosaicError(f"{names[0]} and {names[1]}: no overlap found: {len(regions)} feature regions tried, "
                           f"{why}; the images must overlap by at least {p.min_overlap:.0%}")
     timings["match"] = time.perf_counter() - t
+    distinct, rank = em.distinctness, len(faults)
+    if f > 1:  # refine at full resolution around the scaled-up match, on crops around both areas
+        t = time.perf_counter()
+        width = f * region.width
+        centre = np.array([f * region.centre[0] + (f - 1) // 2, f * region.centre[1] + (f - 1) // 2])
+        start = np.array([f * em.row + (f - 1) / 2.0, f * em.col + (f - 1) / 2.0])
+        radius = f + p.fine_radius
+        # room for the rotated area, the normalisation window and the median filter
+        half = int(0.55 * width * (1.0 + np.deg2rad(max(map(abs, p.angles), default=0.0)))) + p.norm_window + 4
+        lo_l = np.maximum(centre - half, 0)
+        lo_r = np.maximum(np.floor(start).astype(int) - half - radius, 0)
+        crop_l = gl[lo_l[0]:centre[0] + half + 1, lo_l[1]:centre[1] + half + 1]
+        crop_r = gr[lo_r[0]:int(start[0]) + half + radius + 2, lo_r[1]:int(start[1]) + half + radius + 2]
+        full_l, full_r = prepare_image(crop_l, p), prepare_image(crop_r, p)
+        local = replace(region, centre=tuple(int(v) for v in centre - lo_l), width=width)
+        em = match_entropy(full_l, full_r, local, p, backend, names, start=start - lo_r, radius=radius)
+        corr = match_correlation(full_l, full_r, local, (em.row, em.col), em.angle, p)
+        em = replace(em, row=em.row + lo_r[0], col=em.col + lo_r[1])
+        region = replace(region, centre=tuple(int(v) for v in centre), width=width)
+        timings["full_resolution"] = time.perf_counter() - t
     left_point = np.array(region.centre, np.float64)
     right_point = np.array([em.row, em.col], np.float64)
-    angle, cost = em.angle, em.cost
     timings["total"] = time.perf_counter() - t0
-    return PairMatch(left_point, right_point, angle, left_point - right_point, region.width, cost, corr,
-                     em.distinctness, len(faults), region.centres, region.fcm.iterations, timings)
+    return PairMatch(left_point, right_point, em.angle, left_point - right_point, region.width, em.cost, corr,
+                     distinct, rank, region.centres, region.fcm.iterations, timings)
 
 
 # --- stitching -------------------------------------------------------------------
@@ -846,12 +904,11 @@ def stitch(images, backend="auto", params: MosaicParams | None = None, vertical:
     if progress:
         from tqdm import tqdm
         pairs = tqdm(pairs, desc="mosaic", unit="pair", leave=False)
-    prepared = [prepare_image(a, p) for a in work]
     matches = []
     m, t = np.eye(2), np.zeros(2)
     transforms = [(m, t)]
     for i in pairs:
-        pm = register_pair(prepared[i], prepared[i + 1], p, be, names=(names[i], names[i + 1]))
+        pm = register_pair(work[i], work[i + 1], p, be, names=(names[i], names[i + 1]))
         matches.append(pm)
         r = _rot(pm.angle)
         # right pixel q -> left frame: left_point + R (q - right_point) -> mosaic: m(.) + t

@@ -382,3 +382,15 @@ def test_isotropy_tells_edges_from_corners():
     assert M.isotropy(edge, (20, 20), 30) < 0.01
     assert M.isotropy(corner, (20, 20), 30) > 0.3
     assert M.isotropy(checker, (20, 20), 30) > 0.8
+
+
+def test_large_photographs_are_registered_shrunk_then_refined():
+    img = ndimage.zoom(_photo("astronaut")[..., 1].astype(float), 3, order=1)  # 1536 x 1536
+    rng = np.random.default_rng(9)
+    shape, origin_left, origin_right, angle = (1100, 1000), (200, 20), (230, 560), 0.8
+    left = _u8(_crop(img, origin_left, shape) + rng.normal(0, 3, shape))
+    right = _u8(_crop(img, origin_right, shape, angle) + rng.normal(0, 3, shape))
+    pm = M.register_pair(left, right)
+    assert "full_resolution" in pm.timings  # 1100 px > max_size: two scales
+    truth = _truth(origin_left, origin_right, shape, angle, pm.left_point)
+    assert np.abs(pm.right_point - truth).max() <= 1.0
