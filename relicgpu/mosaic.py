@@ -317,8 +317,8 @@ def median3(gray: np.ndarray, size: int = 3) -> np.ndarray:
     return ndimage.median_filter(img, size=size, mode="nearest")
 
 
-def local_normalise(gray: np.ndarray, window: int = 15, mean0: float = 128.0, var0: float = 48.0 ** 2,
-                    alpha1: float = 0.0, alpha2: float = 0.0, var_floor: float = 16.0) -> np.ndarray:
+def local_normalise(gray: np.ndarray, window: int = 31, mean0: float = 128.0, var0: float = 64.0 ** 2,
+                    alpha1: float = 0.0, alpha2: float = 0.0, var_floor: float = 1.0) -> np.ndarray:
     """Eq. 1-3. M_i, VAR_i: mean and variance over the window x window neighbourhood (reflected
     at the border); M_i^d = M0 + alpha1 (M_i - M0) (Eq. 2, reading M^d = M_0^d = mean0);
     VAR_i^d = VAR0 + alpha2 (VAR_i - VAR0) (Eq. 3);

@@ -1,24 +1,30 @@
 """Benchmark of the image mosaic (issue 8): local-entropy matching against OpenCV.
 
 Cuts pairs from the sample photographs that ship inside scikit-image (no
-download): a left crop and a right crop that overlaps it by 20% to 60% of the
-width, shifted up or down by up to 5% of the height, with Gaussian noise on
-both, a gray-level change a*I + b on the right one and a rotation of up to
-2 degrees of the right one about its centre. For the feature point p that
-relicgpu picks in the left crop, the true position in the right crop is known;
-the error of a method is the distance between the position it finds and the
-true one (its offset error at p). Both methods match the same template (the
-feature region relicgpu picked): relicgpu by local entropy (paper 3.4), OpenCV
-by cv2.matchTemplate with TM_CCOEFF_NORMED on the noisy gray crops.
+download; photographs over 640 px are scaled down): a left crop and a right crop
+that overlaps it by 20% to 60% of the width, shifted up or down by up to 5% of
+the height, with Gaussian noise on both (sigma drawn from --noise, default 2-8
+gray levels), a gray-level change a*I + b on the right one (a in 0.8-1.25, b in
++-25) and a rotation of the right one about its centre by up to 2 degrees.
 
-    python scripts/bench_mosaic.py [--pairs 60] [--seed 0] [--backend numpy] [--json out.json]
+relicgpu.mosaic.register_pair does the whole registration (it may answer "no
+overlap found", which counts as a miss). Its error is the distance between
+where it puts its feature centre in the right crop and where that point truly
+is (the offset error at that point). OpenCV's cv2.matchTemplate
+(TM_CCOEFF_NORMED, on the noisy gray crops) gets the same square template:
+the feature region relicgpu used, or the paper's first one when relicgpu
+rejected the pair. Times: relicgpu's whole registration against OpenCV's
+matchTemplate call alone.
+
+    python scripts/bench_mosaic.py [--pairs 60] [--seed 0] [--backend numpy] [--noise 2 8] [--json out.json]
+    python scripts/bench_mosaic.py --example docs/mosaic_example.png
 
 Prints a table; the issue's bar is an offset within 1 px in >= 95% of pairs.
+The mosaic's defaults were tuned on seeds 1-4; seed 0 is held out.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
