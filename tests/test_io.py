@@ -82,3 +82,12 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
     atomic_write_bytes(target, b"first")
     assert target.read_bytes() == b"first"
     assert [p.name for p in tmp_path.iterdir()] == ["out.bin"]
+
+
+def test_atomic_write_gives_the_usual_file_mode(tmp_path):
+    import os
+    target = tmp_path / "shared.txt"
+    atomic_write_bytes(target, b"x")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (target.stat().st_mode & 0o777) == (0o666 & ~umask)
