@@ -696,7 +696,9 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     show = bool(progress) and sys.stderr.isatty()
     stats: dict = {"fragments": n, "scale": scale}
 
+    t0 = time.perf_counter()
     eng = make_engine(engine, workers, address, be, gpus_per_task)
+    timings["engine"] = time.perf_counter() - t0  # starting (or joining) Ray
     try:
         # 1. prepare every fragment at the common scale
         t0 = time.perf_counter()

@@ -48,7 +48,8 @@ def run_one(frag_dir: Path, truth: dict, args, out_dir: Path | None = None) -> d
     frags = load_directory(frag_dir)
     t0 = time.perf_counter()
     result = assemble(frags, backend=args.backend, engine=args.engine, workers=args.workers, progress=False,
-                      top_k=args.top_k, out_dir=out_dir, cache_dir=None if out_dir is None else out_dir / "cache")
+                      top_k=args.top_k, out_dir=out_dir, cache_dir=None if out_dir is None else out_dir / "cache",
+                      gpus_per_task=args.gpus_per_task)
     wall = time.perf_counter() - t0
     s = score_assembly(result, frags, truth)
     index = {n: i for i, n in enumerate(result.names)}
@@ -170,7 +171,7 @@ def print_grid(rows: list[dict], top_k: int) -> dict:
 
 def print_scale(rows: list[dict]) -> None:
     print("\nScale: mixed 10-piece objects")
-    stages = ["load", "prepare", "screen", "match", "assemble", "refine", "write"]
+    stages = ["load", "engine", "prepare", "screen", "match", "assemble", "refine", "write"]
     print(f"{'frags':>5s} {'faces':>8s} {'cand/all':>11s} " + " ".join(f"{s:>8s}" for s in stages)
           + f" {'total s':>8s} {'acc':>6s} {'groups':>6s}")
     for r in rows:
@@ -185,6 +186,7 @@ def main(argv=None) -> int:
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--engine", default="local", choices=["local", "ray"])
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--gpus-per-task", type=float, default=None, help="Ray: GPUs per task where there are GPUs")
     ap.add_argument("--top-k", type=int, default=TOP_K)
     ap.add_argument("--faces", type=int, default=3000, help="faces per fragment in the grid")
     ap.add_argument("--shapes", nargs="+", default=list(SHAPES))

@@ -78,18 +78,23 @@ def test_ray_assembly_equals_local(ray_session, synth_fragments, local_doc):
     assert _comparable(result.to_dict()) == local_doc
 
 
+def _parent(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
 def _ray_task_pids(name: str) -> list[int]:
-    """Processes whose title is ray::<name> (a Ray worker running that task)."""
+    """Workers of this process's own Ray (worker -> raylet -> this driver) whose title is
+    ray::<name>, i.e. running that task. Other people's Ray runs on the machine are left alone."""
     pids = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
         try:
             cmd = (entry / "cmdline").read_bytes().split(b"\0")[0].decode(errors="replace")
-        except OSError:
+            if cmd.startswith(f"ray::{name}") and _parent(_parent(int(entry.name))) == os.getpid():
+                pids.append(int(entry.name))
+        except (OSError, ValueError, IndexError):
             continue
-        if cmd.startswith(f"ray::{name}"):
-            pids.append(int(entry.name))
     return pids
 
 
