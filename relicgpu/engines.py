@@ -79,7 +79,7 @@ class RayEngine:
         try:
             import ray
         except ImportError as exc:  # ray is an optional dependency
-            raise RuntimeError(f"the ray engine needs the 'ray' package ({exc}); pip install 'ray>=2.9'") from None
+            raise RuntimeError(f"the ray engine needs the 'ray' package ({exc}): pip install 'relicgpu[distributed]'") from None
         if gpus_per_task is not None and not 0.0 <= float(gpus_per_task):
             raise ValueError(f"gpus_per_task must not be negative, got {gpus_per_task}")
         self._ray = ray

@@ -188,7 +188,7 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--gpus-per-task", type=float, default=None, help="Ray: GPUs per task where there are GPUs")
     ap.add_argument("--top-k", type=int, default=TOP_K)
-    ap.add_argument("--faces", type=int, default=3000, help="faces per fragment in the grid")
+    ap.add_argument("--faces", type=int, default=4000, help="faces per fragment in the grid (synth's default)")
     ap.add_argument("--shapes", nargs="+", default=list(SHAPES))
     ap.add_argument("--pieces", nargs="+", type=int, default=[5, 10])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
