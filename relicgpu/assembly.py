@@ -930,6 +930,10 @@ def cli_add_arguments(parser) -> None:
     parser.add_argument("--cache-dir", default=None, help="cache directory (default OUT/cache)")
     parser.add_argument("--top-k", type=int, default=TOP_K, help=f"partners per fragment matched in full (default {TOP_K})")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary on stderr")
+    parser.add_argument("--group", action="store_true",
+                        help="sort the heap into objects first (relicgpu.grouping) and assemble each on its own")
+    parser.add_argument("--classifier", default=None, metavar="WEIGHTS",
+                        help="with --group: classify with weights from `relicgpu train-classifier`")
 
 
 def cli_main(args) -> int:
@@ -948,6 +952,16 @@ def cli_main(args) -> int:
         raise CliError(f"{src}: not a directory")
     if Path(args.out).resolve() == src.resolve():
         raise CliError(f"{args.out}: the output directory must not be the input directory")
+    if args.group:
+        from .grouping import assemble_grouped
+
+        grouping, _ = assemble_grouped(src, args.out, classifier=args.classifier, backend=args.backend,
+                                       engine=args.engine, workers=args.workers, cache_dir=args.cache_dir,
+                                       progress=not args.quiet, address=args.address, top_k=args.top_k,
+                                       gpus_per_task=args.gpus_per_task)
+        log(f"{len(grouping.groups)} object(s) of sizes {[len(g) for g in grouping.groups]}; "
+            f"wrote {Path(args.out) / 'assembly.json'}, groups.json, object_<k>/")
+        return 0
     try:
         result = assemble(src, backend=args.backend, engine=args.engine, workers=args.workers,
                           cache_dir=args.cache_dir, progress=not args.quiet, out_dir=args.out,

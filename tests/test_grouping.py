@@ -158,3 +158,21 @@ def test_assemble_grouped_writes_objects(tmp_path):
         pieces.setdefault(e["group"], set()).add(e["object"])
     assert all(len(s) == 1 for s in pieces.values())
     assert (tmp_path / "out" / "groups.json").exists() and (tmp_path / "out" / "object_0" / "assembly.json").exists()
+
+
+def test_assemble_cli_group_flag_writes_groups_and_objects(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    a = synth.generate(shape="vase", pieces=2, seed=1, faces=1500, progress=False)
+    b = synth.generate(shape="slab", pieces=2, seed=2, faces=1500, progress=False)
+    synth.write_many([a, b], tmp_path / "heap")
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "relicgpu.cli", "assemble", str(tmp_path / "heap" / "fragments"),
+                           "-o", str(out), "--group", "--backend", "numpy", "--quiet"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "groups.json").exists()
+    doc = json.loads((out / "assembly.json").read_text())
+    assert len(doc["fragments"]) == 4
+    assert all("object" in f for f in doc["fragments"])
