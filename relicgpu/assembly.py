@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from .io import Fragment, FragmentError, atomic_write_bytes, atomic_write_json, load_directory, load_fragment
+from .icp import apply, invert
 from .params import Params
 
 CACHE_VERSION = 1
@@ -444,15 +445,7 @@ def _pair_doc(m) -> dict:
 
 # --- the assembly graph ----------------------------------------------------------
 
-def _inv(t: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = t[:3, :3].T
-    out[:3, 3] = -t[:3, :3].T @ t[:3, 3]
-    return out
-
-
-def _apply(t: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return p @ t[:3, :3].T + t[:3, 3]
+_inv, _apply = invert, apply  # short names for the graph code below
 
 
 def _pose_gap(points: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> float:

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .icp import apply, invert
+
 
 @dataclass(frozen=True)
 class Score:
@@ -32,17 +34,6 @@ class Score:
     details: dict = field(default_factory=dict)
 
 
-def _rigid_inv(t: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = t[:3, :3].T
-    out[:3, 3] = -t[:3, :3].T @ t[:3, 3]
-    return out
-
-
-def _apply(t: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return v @ t[:3, :3].T + t[:3, 3]
-
-
 def _rms(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
 
@@ -53,8 +44,8 @@ def _angle_deg(r: np.ndarray) -> float:
 
 def relative_pose_error(vertices_b: np.ndarray, transform: np.ndarray, true_a: np.ndarray, true_b: np.ndarray) -> float:
     """RMS distance of b's vertices placed by `transform` (b onto a) from their true place relative to a."""
-    truth = _rigid_inv(true_a) @ true_b
-    return _rms(_apply(transform, vertices_b), _apply(truth, vertices_b))
+    truth = invert(true_a) @ true_b
+    return _rms(apply(transform, vertices_b), apply(truth, vertices_b))
 
 
 def score(vertices: list[np.ndarray], pred_poses: list, groups: list[int], true_poses: list[np.ndarray],
@@ -86,8 +77,8 @@ def score(vertices: list[np.ndarray], pred_poses: list, groups: list[int], true_
         in_main = [i for i in placed if groups[i] == main]
         best = (-1, None, None)
         for r in in_main:  # the reference fragment that sits on its truth
-            align = true_poses[r] @ _rigid_inv(pred_poses[r])
-            errs = {i: _rms(_apply(align @ pred_poses[i], vertices[i]), _apply(true_poses[i], vertices[i]))
+            align = true_poses[r] @ invert(pred_poses[r])
+            errs = {i: _rms(apply(align @ pred_poses[i], vertices[i]), apply(true_poses[i], vertices[i]))
                     for i in in_main}
             ok = sum(e <= tol_abs for e in errs.values())
             if ok > best[0]:
@@ -95,12 +86,12 @@ def score(vertices: list[np.ndarray], pred_poses: list, groups: list[int], true_
         _, r, align = best
         for i in in_main:
             pred = align @ pred_poses[i]
-            good = _rms(_apply(pred, vertices[i]), _apply(true_poses[i], vertices[i])) <= tol_abs
+            good = _rms(apply(pred, vertices[i]), apply(true_poses[i], vertices[i])) <= tol_abs
             right[i] = good
             if i != r:
                 rot_err.append(_angle_deg(pred[:3, :3] @ true_poses[i][:3, :3].T))
                 c = vertices[i].mean(axis=0)
-                trans_err.append(float(np.linalg.norm(_apply(pred, c[None]) - _apply(true_poses[i], c[None]))))
+                trans_err.append(float(np.linalg.norm(apply(pred, c[None]) - apply(true_poses[i], c[None]))))
         # a fragment of another object placed in this object's main group is wrong
         intruders = [i for i in range(n) if objects[i] != obj and pred_poses[i] is not None and groups[i] == main]
         for i in intruders:

@@ -32,6 +32,14 @@ def apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.asarray(points, np.float64) @ transform[:3, :3].T + transform[:3, 3]
 
 
+def invert(transform: np.ndarray) -> np.ndarray:
+    """The inverse of a rigid 4x4 transform (transpose of the rotation, no general inverse)."""
+    out = np.eye(4)
+    out[:3, :3] = transform[:3, :3].T
+    out[:3, 3] = -transform[:3, :3].T @ transform[:3, 3]
+    return out
+
+
 def batch_kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Kabsch for a batch of point triples: src, dst (B,k,3) -> (B,4,4)."""
     cs, cd = src.mean(axis=1), dst.mean(axis=1)

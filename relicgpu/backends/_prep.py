@@ -129,6 +129,15 @@ def _flag_intervals(a: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+def nn_inputs(source, target) -> tuple[np.ndarray, np.ndarray]:
+    """Source and target as contiguous (N,3) float64; an empty target is an error."""
+    src = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
+    dst = np.ascontiguousarray(np.asarray(target, np.float64).reshape(-1, 3))
+    if len(dst) == 0:
+        raise ValueError("nearest_neighbors: the target point set is empty")
+    return src, dst
+
+
 def check_offsets(values: np.ndarray, offsets, what: str) -> np.ndarray:
     off = np.asarray(offsets, np.int64).ravel()
     if len(off) == 0 or off[0] < 0 or np.any(np.diff(off) < 0) or off[-1] > len(values):

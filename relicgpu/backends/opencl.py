@@ -311,10 +311,7 @@ class OpenCLBackend:
     # --- family 4 -----------------------------------------------------------------
 
     def nearest_neighbors(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        src = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
-        dst = np.ascontiguousarray(np.asarray(target, np.float64).reshape(-1, 3))
-        if len(dst) == 0:
-            raise ValueError("nearest_neighbors: the target point set is empty")
+        src, dst = _prep.nn_inputs(source, target)
         if len(src) == 0:
             return np.zeros(0, np.int32), np.zeros(0)
         ns, nt = len(src), len(dst)
