@@ -6,10 +6,12 @@ within groups. Two ways:
 
 - unsupervised, `group(fragments)`: per-fragment descriptors that survive
   breakage (below), each with an uncertainty (the fragment's own spread of it,
-  floored); two fragments are as far apart as the mean number of standard errors
-  between their descriptors; average-linkage agglomerative clustering, the number
-  of groups the one of best silhouette (one group when no split reaches
-  `min_silhouette`), or the tree cut at a given distance.
+  floored); per pair of fragments and descriptor, how many standard errors apart
+  they are (z, capped); a fixed logistic model over those z (PAIR_WEIGHTS, fitted
+  once on synthetic heaps that are not the benchmark's, see `fit_pair_model`) gives
+  the odds that the two come from one object; average-linkage agglomerative
+  clustering on 1 - p, cut where the mean p between two clusters falls below 0.7,
+  so the number of groups is found, not given (or given, or another cut).
 - supervised, `relicgpu train-classifier LABELS.csv`: a small PointNet over
   surface points (position in the fragment's principal frame, normal, fracture
   flag) joined with the descriptors, trained with torch; `relicgpu group
@@ -24,6 +26,10 @@ keeps from its object whatever the cuts were:
     perturbation at triangle scale, from the segmentation);
   fracture surfaces: roughness (normal perturbation; RMS height about each
     patch's plane), share of the area;
+  scan: the median edge length of the fracture surfaces and of the original
+    surface (fragments of one object are usually scanned and meshed together, so
+    they share a resolution; where every fragment has one resolution this carries
+    nothing, and `resolution=False` uses a model fitted without it);
   colour: mean and spread of the vertex colours of the original surface, when
     every fragment's file has them.
 """
@@ -48,12 +54,26 @@ THICKNESS_RAYS = 160
 # Floors of the uncertainty of each compared feature (thickness median, larger and smaller
 # curvature medians, original-surface roughness, fracture height, fracture share): a
 # fragment's own spread stands for the rest (see Descriptor.evidence).
-FEATURE_NAMES = ("log_thickness", "kmax", "kmin", "orig_roughness", "frac_height", "frac_share")
-FEATURE_FLOORS = (0.05, 0.2, 0.2, 0.25, 0.4, 0.15)
+FEATURE_NAMES = ("log_thickness", "kmax", "kmin", "orig_roughness", "frac_height", "frac_share",
+                 "log_frac_edge", "log_orig_edge")
+# The scan resolution floors: 2x the within-object spread measured on synthetic heaps (0.02-0.06).
+FEATURE_FLOORS = (0.05, 0.2, 0.2, 0.25, 0.4, 0.15, 0.08, 0.08)
+RESOLUTION_FEATURES = 2  # the last two features: left out with resolution=False
 COLOUR_FLOOR = 0.02
-# One group when the whole heap merges within this distance (mean standard errors): fragments
-# of one object measured 0.3-0.5 apart (median) on the synthetic mixtures, objects 1.2-1.8.
-MIN_SPLIT_DISTANCE = 1.0
+Z_CAP = 8.0  # standard errors: beyond this a feature says "different" no louder
+# Logistic model of "one object" over the capped z of FEATURE_NAMES, last the intercept;
+# class-balanced, L2 1e-2. Fitted by `scripts/bench_group.py --fit 10 11 ... 19` on heaps of
+# synthetic mixture seeds 10-19 (the benchmark scores seeds 0-4; same 8 shapes, other breaks,
+# scales and piece counts). Colour, when present, enters with the thickness weight (not fitted:
+# no coloured training heaps).
+# Two-fold check on those seeds (fitted on 5, ARI on the other 5, at LINK_CUT): mean 0.927, min
+# 0.737 (0.854, min 0.683, without the resolution features).
+PAIR_WEIGHTS = (-2.328, -0.549, 0.022, -0.525, -0.603, -0.571, -1.167, -0.197, 6.153)
+PAIR_WEIGHTS_NO_RESOLUTION = (-2.193, -0.939, 0.000, -1.207, -0.316, -1.403, 5.058)
+# Clusters merge while the mean probability of one object between them is above 1 - LINK_CUT.
+# Chosen on the same seeds 10-19, two-fold: cut 0.3/0.4/0.5/0.6 gave mean ARI 0.927/0.925/0.920/0.875
+# (min 0.74/0.59/0.58/0.46): whole objects merge sooner than they split.
+LINK_CUT = 0.3
 CLASSIFIER_POINTS = 256
 
 
@@ -70,6 +90,9 @@ class Descriptor:
     frac_share: float  # fracture area / total area
     size: float  # bounding-box diagonal
     colour: np.ndarray | None = None  # (6,) mean and std of RGB in [0, 1] on the original surface
+    frac_edge: float = float("nan")  # median edge length between fracture faces, length
+    orig_edge: float = float("nan")  # median edge length elsewhere, length
+    edge_se: tuple = (0.0, 0.0)  # standard errors of the log of those medians
 
     def vector(self, ref_length: float) -> np.ndarray:
         """Unit-free feature vector: curvatures as asinh(k * L), lengths as log(x / L)."""
@@ -88,8 +111,10 @@ class Descriptor:
         has one, combined with a floor (FEATURE_FLOORS)."""
         x = self.vector(ref_length)
         iqr = lambda lo, hi: (x[hi] - x[lo]) / 1.35
-        values = [x[7], x[1], x[4], x[9], x[11], x[12]]
-        spread = [iqr(6, 8), iqr(0, 2), iqr(3, 5), 0.0, 0.0, 0.0]
+        L = float(ref_length)
+        edge = lambda e: np.log(max(e, 1e-6 * L) / L) if np.isfinite(e) else np.log(self.size / L)
+        values = [x[7], x[1], x[4], x[9], x[11], x[12], edge(self.frac_edge), edge(self.orig_edge)]
+        spread = [iqr(6, 8), iqr(0, 2), iqr(3, 5), 0.0, 0.0, 0.0, *self.edge_se]
         floors = list(FEATURE_FLOORS)
         if self.colour is not None:
             values += list(self.colour[:3])
@@ -102,8 +127,8 @@ class Descriptor:
 class Grouping:
     names: list[str]
     labels: np.ndarray  # (n,) group per fragment, 0 the largest
-    silhouette: float  # of the chosen split (nan for one group)
-    scores: dict = field(default_factory=dict)  # k -> silhouette of each split tried
+    silhouette: float  # of the chosen split on 1 - p (nan for one group)
+    scores: dict = field(default_factory=dict)  # extra figures of the method
     method: str = "average"
     timings: dict = field(default_factory=dict)
 
@@ -116,7 +141,6 @@ class Grouping:
                 "groups": self.groups,
                 "fragments": [{"file": n, "group": int(l)} for n, l in zip(self.names, self.labels)],
                 "silhouette": None if not np.isfinite(self.silhouette) else float(self.silhouette),
-                "silhouette_by_k": {str(k): float(s) for k, s in self.scores.items()},
                 "timings": {k: round(float(v), 4) for k, v in self.timings.items()}}
 
 
@@ -161,8 +185,30 @@ def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None)
         c = np.asarray(colours, np.float64)[used, :3]
         c = c / 255.0 if c.max() > 1.0 else c
         colour = np.concatenate([c.mean(0), c.std(0)])
+    frac_edge, orig_edge, edge_se = _edge_lengths(v, seg.topology, frac)
     return Descriptor(fragment.name, kmax_q, kmin_q, thickness, orig_rough, frac_rough, frac_height,
-                      float(areas[frac].sum() / total) if total > 0 else 0.0, size, colour)
+                      float(areas[frac].sum() / total) if total > 0 else 0.0, size, colour,
+                      frac_edge, orig_edge, edge_se)
+
+
+def _edge_lengths(v, topology, frac, min_edges=10):
+    """Median length of the edges between two fracture faces and of the other edges (nan when
+    fewer than min_edges), the resolution the fragment was scanned and meshed at, and the
+    standard error of the log of each median (1.25 x spread / sqrt(n); 1 when unmeasured)."""
+    ev, ef = topology.edge_vertices, topology.edge_faces
+    length = np.maximum(np.linalg.norm(v[ev[:, 0]] - v[ev[:, 1]], axis=1), 1e-300)
+    on_frac = frac[ef[:, 0]] & frac[ef[:, 1]]
+    meds, ses = [], []
+    for m in (on_frac, ~on_frac):
+        if m.sum() < min_edges:
+            meds.append(float("nan"))
+            ses.append(1.0)
+            continue
+        logs = np.log(length[m])
+        q25, q75 = np.quantile(logs, (0.25, 0.75))
+        meds.append(float(np.exp(np.median(logs))))
+        ses.append(float(1.25 * (q75 - q25) / 1.35 / np.sqrt(m.sum())))
+    return meds[0], meds[1], (ses[0], ses[1])
 
 
 def _vertex_normals(nv, f, fn, areas):
@@ -324,47 +370,78 @@ def silhouette(dist: np.ndarray, labels: np.ndarray) -> float:
     return float(s.mean())
 
 
-def evidence_distance(values: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
-    """(n, n) mean over features of |x_i - x_j| / sqrt(s_i^2 + s_j^2): how many standard
-    errors apart two fragments are, each feature weighed by how well both measured it."""
-    diff = np.abs(values[:, None] - values[None])
-    d = (diff / np.sqrt(sigmas[:, None] ** 2 + sigmas[None] ** 2)).mean(axis=2)
-    np.fill_diagonal(d, 0.0)
-    return 0.5 * (d + d.T)
+def pair_z(values: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """(n, n, D) |x_i - x_j| / sqrt(s_i^2 + s_j^2) per feature, capped at Z_CAP: how many
+    standard errors apart two fragments are, each feature weighed by how well both measured it."""
+    z = np.abs(values[:, None] - values[None]) / np.sqrt(sigmas[:, None] ** 2 + sigmas[None] ** 2)
+    return np.minimum(z, Z_CAP)
 
 
-def cluster(dist: np.ndarray, n_groups: int | None = None, distance: float | None = None,
-            min_silhouette: float = 0.25, max_groups: int | None = None,
-            min_split: float = MIN_SPLIT_DISTANCE) -> tuple[np.ndarray, float, dict]:
-    """Average-linkage clustering of a distance matrix: labels (0 = largest group), silhouette,
-    and the silhouette of every number of groups tried (when the number is chosen).
+def _model_columns(n_features: int, resolution: bool) -> list[int]:
+    geometric = len(FEATURE_NAMES) - RESOLUTION_FEATURES
+    cols = list(range(len(FEATURE_NAMES) if resolution else geometric))
+    return cols + list(range(len(FEATURE_NAMES), n_features))  # colour columns, when present
 
-    Silhouette cannot judge one group against several, so the heap stays one group when
-    the two last clusters merge closer than `min_split` (or no split reaches min_silhouette)."""
+
+def same_object_probability(values: np.ndarray, sigmas: np.ndarray, resolution: bool = True,
+                            weights: np.ndarray | None = None) -> np.ndarray:
+    """(n, n) probability (class-balanced odds) that two fragments come from one object."""
+    w = np.asarray(weights if weights is not None else (PAIR_WEIGHTS if resolution else PAIR_WEIGHTS_NO_RESOLUTION),
+                   np.float64)
+    z = pair_z(values, sigmas)
+    cols = _model_columns(values.shape[1], resolution)
+    n_geo = len(w) - 1
+    logit = z[:, :, cols[:n_geo]] @ w[:-1] + w[-1]
+    if len(cols) > n_geo:  # colour: the mean of its z, weighed as thickness
+        logit += w[0] * z[:, :, cols[n_geo:]].mean(axis=2)
+    p = 1.0 / (1.0 + np.exp(-np.clip(logit, -50, 50)))
+    np.fill_diagonal(p, 1.0)
+    return 0.5 * (p + p.T)
+
+
+def fit_pair_model(heaps, resolution: bool = True, l2: float = 1e-2, iterations: int = 50) -> np.ndarray:
+    """Class-balanced L2 logistic regression of "same object" over the pair z of FEATURE_NAMES.
+
+    heaps: [(descriptors, labels)] of known mixtures. Returns the weights, intercept last."""
+    xs, ys = [], []
+    for desc, labels in heaps:
+        L = float(np.median([d.size for d in desc]))
+        values, sigmas = (np.stack(a) for a in zip(*(d.evidence(L) for d in desc)))
+        cols = _model_columns(len(FEATURE_NAMES), resolution)
+        z = pair_z(values[:, :len(FEATURE_NAMES)], sigmas[:, :len(FEATURE_NAMES)])[:, :, cols]
+        lab = np.asarray(labels)
+        iu = np.triu_indices(len(lab), 1)
+        xs.append(z[iu])
+        ys.append(lab[iu[0]] == lab[iu[1]])
+    x = np.hstack([np.vstack(xs), np.ones((sum(len(a) for a in xs), 1))])
+    y = np.concatenate(ys).astype(np.float64)
+    if y.min() == y.max():
+        raise ValueError("the training heaps need pairs of one object and pairs of two")
+    sample_w = np.where(y == 1, 0.5 / y.mean(), 0.5 / (1 - y.mean()))
+    w = np.zeros(x.shape[1])
+    for _ in range(iterations):  # Newton steps
+        p = 1.0 / (1.0 + np.exp(-(x @ w)))
+        hess = x.T @ (x * (sample_w * p * (1 - p))[:, None]) + l2 * np.eye(len(w))
+        w -= np.linalg.solve(hess, x.T @ (sample_w * (p - y)) + l2 * w)
+    return w
+
+
+def cluster(dist: np.ndarray, n_groups: int | None = None, distance: float = LINK_CUT) -> tuple[np.ndarray, float]:
+    """Average-linkage clustering of a distance matrix (here 1 - p of one object), cut at
+    `distance` or into `n_groups`: labels (0 = largest group) and their silhouette."""
     from scipy.cluster.hierarchy import fcluster, linkage
     from scipy.spatial.distance import squareform
 
     n = len(dist)
     if n == 1:
-        return np.zeros(1, np.int64), float("nan"), {}
+        return np.zeros(1, np.int64), float("nan")
     tree = linkage(squareform(dist, checks=False), method="average")
-    scores = {}
     if n_groups is not None:
         labels = fcluster(tree, min(int(n_groups), n), criterion="maxclust")
-    elif distance is not None:
-        labels = fcluster(tree, float(distance), criterion="distance")
     else:
-        best, labels = -np.inf, np.ones(n, np.int64)
-        for k in range(2, min(max_groups or n // 2, n - 1) + 1):
-            lab = fcluster(tree, k, criterion="maxclust")
-            s = silhouette(dist, lab)
-            scores[k] = s
-            if s > best:
-                best, labels = s, lab
-        if not best >= min_silhouette or tree[-1, 2] < min_split:
-            labels = np.ones(n, np.int64)
+        labels = fcluster(tree, float(distance), criterion="distance")
     labels = _relabel_by_size(np.asarray(labels))
-    return labels, silhouette(dist, labels), scores
+    return labels, silhouette(dist, labels)
 
 
 def _relabel_by_size(labels):
@@ -375,19 +452,25 @@ def _relabel_by_size(labels):
 
 
 def group_fragments(fragments: list[Fragment], n_groups: int | None = None, distance: float | None = None,
-                    min_silhouette: float = 0.25, params=None, progress: bool = False) -> Grouping:
+                    resolution: bool = True, params=None, progress: bool = False) -> Grouping:
     """Unsupervised grouping of a heap (see the module docstring)."""
     if not fragments:
         raise FragmentError("no fragments to group")
     t0 = time.perf_counter()
     desc = describe_all(fragments, params, progress)
     t1 = time.perf_counter()
-    L = float(np.median([d.size for d in desc]))
-    values, sigmas = (np.stack(a) for a in zip(*(d.evidence(L) for d in desc)))
-    labels, sil, scores = cluster(evidence_distance(values, sigmas), n_groups, distance, min_silhouette)
+    p = heap_probability(desc, resolution)
+    labels, sil = cluster(1.0 - p, n_groups, LINK_CUT if distance is None else distance)
     t2 = time.perf_counter()
-    return Grouping([fr.name for fr in fragments], labels, sil, scores, "average",
+    return Grouping([fr.name for fr in fragments], labels, sil, {}, "average",
                     {"describe": t1 - t0, "cluster": t2 - t1})
+
+
+def heap_probability(descriptors: list[Descriptor], resolution: bool = True) -> np.ndarray:
+    """(n, n) probability of one object for every pair of a heap's fragments."""
+    L = float(np.median([d.size for d in descriptors]))
+    values, sigmas = (np.stack(a) for a in zip(*(d.evidence(L) for d in descriptors)))
+    return same_object_probability(values, sigmas, resolution)
 
 
 def group(fragments, n_groups: int | None = None, **kw) -> list[list[str]]:
@@ -696,9 +779,11 @@ def cli_add_arguments(parser, name="group") -> None:
     parser.add_argument("-o", "--out", required=True, help="output directory (groups.json)")
     parser.add_argument("--groups", type=int, default=None, help="number of groups (default: found)")
     parser.add_argument("--distance", type=float, default=None,
-                        help="cut the tree at this distance (standard errors) instead of choosing by silhouette")
-    parser.add_argument("--min-silhouette", type=float, default=0.25,
-                        help="below this best silhouette the heap stays one group (default: 0.25)")
+                        help=f"cut the tree where the mean probability of one object between two clusters "
+                             f"falls below 1 - DISTANCE (default: {LINK_CUT})")
+    parser.add_argument("--no-resolution", action="store_true",
+                        help="ignore the scan resolution (edge lengths): for heaps scanned at one resolution "
+                             "whatever the object")
     parser.add_argument("--classifier", default=None, metavar="WEIGHTS",
                         help="classify with weights from `relicgpu train-classifier` instead of clustering")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
@@ -743,7 +828,9 @@ def cli_main(args, name="group") -> int:
                "fragments": [{"file": fr.name, "group": classes.index(p), "label": p,
                               "probability": float(pr.max())} for fr, p, pr in zip(fragments, pred, prob)]}
     else:
-        g = group_fragments(fragments, args.groups, args.distance, args.min_silhouette, progress=not args.quiet)
+        if args.distance is not None and not 0.0 < args.distance < 1.0:
+            raise CliError(f"--distance must lie between 0 and 1, got {args.distance}")
+        g = group_fragments(fragments, args.groups, args.distance, not args.no_resolution, progress=not args.quiet)
         doc = g.to_dict()
     atomic_write_json(Path(args.out) / "groups.json", doc)
     sizes = [len(x) for x in doc["groups"]]

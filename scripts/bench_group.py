@@ -11,6 +11,11 @@ the mixtures.
 
     python scripts/bench_group.py                 # full grid: 5 mixture seeds
     python scripts/bench_group.py --seeds 0 1 --train-seeds 1000
+    python scripts/bench_group.py --fit 10 11 12 13 14 15 16 17 18 19   # refit grouping.PAIR_WEIGHTS
+
+The pair model of the unsupervised grouping (grouping.PAIR_WEIGHTS) was fitted with `--fit` on
+mixture seeds 10-19, never on the scored seeds; `--fit` also prints a cross-check: fitted on
+one half of those seeds, the ARI on the other half.
 """
 from __future__ import annotations
 
@@ -141,6 +146,28 @@ def bench_assembly(faces: int) -> None:
         print(f"{name:<34} {t:>7.1f} {sc.part_accuracy:>8.3f} {sc.pair_precision:>9.3f} {sc.pair_recall:>8.3f}")
 
 
+def fit(seeds, faces, cache) -> None:
+    """Fit the pair models (with and without scan resolution) on these mixture seeds and print them."""
+    heaps = []
+    for s in seeds:
+        frags, labels = mixture(s, faces, cache)
+        heaps.append((G.describe_all(frags), labels, frags))
+    half = len(heaps) // 2
+    for resolution, name in ((True, "PAIR_WEIGHTS"), (False, "PAIR_WEIGHTS_NO_RESOLUTION")):
+        w = G.fit_pair_model([(d, l) for d, l, _ in heaps], resolution)
+        cross = []
+        if half >= 1:
+            for train, test in ((heaps[:half], heaps[half:]), (heaps[half:], heaps[:half])):
+                wt = G.fit_pair_model([(d, l) for d, l, _ in train], resolution)
+                for d, l, _ in test:
+                    L = float(np.median([x.size for x in d]))
+                    v, sg = (np.stack(a) for a in zip(*(x.evidence(L) for x in d)))
+                    p = G.same_object_probability(v, sg, resolution, weights=wt)
+                    cross.append(G.adjusted_rand_index(l, G.cluster(1 - p)[0]))  # at G.LINK_CUT
+        print(f"{name} = ({', '.join(f'{x:.3f}' for x in w)})  # {', '.join(G.FEATURE_NAMES[:len(w) - 1])}, "
+              f"intercept; two-fold ARI over seeds {list(seeds)}: mean {np.mean(cross):.3f}, min {np.min(cross):.3f}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
@@ -150,11 +177,18 @@ def main(argv=None) -> int:
     ap.add_argument("--epochs", type=int, default=100)
     ap.add_argument("--cache", default="/tmp/relicgpu_bench_group", help="synth cache ('' for none)")
     ap.add_argument("--no-supervised", action="store_true")
+    ap.add_argument("--no-resolution", action="store_true",
+                    help="unsupervised grouping without the scan-resolution features")
+    ap.add_argument("--fit", type=int, nargs="+", default=None, metavar="SEED",
+                    help="fit the pair model on these mixture seeds, print it, and stop")
     ap.add_argument("--assembly", action="store_true",
                     help="also: assemble a 3-object mixture with grouping, without, and each object alone")
     ap.add_argument("--assembly-faces", type=int, default=2000, help="faces per fragment there (default: 2000)")
     args = ap.parse_args(argv)
     cache = Path(args.cache) if args.cache else None
+    if args.fit:
+        fit(args.fit, args.faces, cache)
+        return 0
 
     rows = []
     mixtures = []
@@ -162,7 +196,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         frags, labels = mixture(s, args.faces, cache)
         t1 = time.perf_counter()
-        g = G.group_fragments(frags)
+        g = G.group_fragments(frags, resolution=not args.no_resolution)
         t2 = time.perf_counter()
         ari = G.adjusted_rand_index(labels, g.labels)
         mixtures.append((frags, labels))
@@ -170,7 +204,8 @@ def main(argv=None) -> int:
         print(f"seed {s}: {len(set(labels))} objects, {len(frags)} fragments -> {int(g.labels.max()) + 1} groups, "
               f"ARI {ari:.3f} ({t2 - t1:.1f} s)", file=sys.stderr)
 
-    print("\nUnsupervised grouping (average linkage on descriptor evidence distance, groups by silhouette)")
+    print(f"\nUnsupervised grouping (pair model on descriptor z{'' if args.no_resolution else ' with scan resolution'}"
+          f", average linkage cut at p = {1 - G.LINK_CUT:.2g})")
     print(f"{'seed':>4} {'objects':>7} {'frags':>5} {'groups':>6} {'ARI':>6} {'synth s':>7} {'group s':>7}")
     for s, no, nf, ng, ari, ts, tg in rows:
         print(f"{s:>4} {no:>7} {nf:>5} {ng:>6} {ari:>6.3f} {ts:>7.1f} {tg:>7.1f}")
