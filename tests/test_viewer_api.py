@@ -342,6 +342,38 @@ def test_malformed_assembly_json_is_reported(box):
     assert "invalid JSON at line 1" in client.get("/api/cases/box/fragments").get_json()["assembly_error"]
 
 
+def test_object_groups_from_groups_json_and_from_assembly(box):
+    ws, _ = box
+    client = create_app(ws).test_client()
+    body = client.get("/api/cases/other/fragments").get_json()
+    assert body["objects"] is None and all(f["object"] is None for f in body["fragments"])
+    # `relicgpu group` output beside the fragments (names as files, stems, or paths)
+    (ws / "other" / "groups.json").write_text(json.dumps({"version": 1, "method": "average", "fragments": [
+        {"file": "piece_0.ply", "group": 1}, {"file": "piece_1", "group": 0},
+        {"file": "/elsewhere/piece_2.ply", "group": 1}, {"file": "gone.ply", "group": 2}]}))
+    body = client.get("/api/cases/other/fragments").get_json()
+    assert {f["name"]: f["object"] for f in body["fragments"]} == {"piece_0": 1, "piece_1": 0, "piece_2": 1}
+    assert body["objects"] == {"source": "groups.json", "count": 2, "method": "average"}
+    assert any("gone.ply" in n for n in body["notes"])
+    # assemble --group: "object" in assembly.json wins over any groups.json
+    doc = json.loads((ws / "box" / "assembly" / "assembly.json").read_text())
+    for k, e in enumerate(doc["fragments"]):
+        e["object"] = k % 2
+    (ws / "box" / "assembly" / "assembly.json").write_text(json.dumps(doc))
+    (ws / "box" / "groups.json").write_text(json.dumps({"fragments": [{"file": "piece_0.ply", "group": 5}]}))
+    body = client.get("/api/cases/box/fragments").get_json()
+    assert [f["object"] for f in body["fragments"]] == [0, 1, 0]
+    assert body["objects"]["source"] == "assembly/assembly.json" and body["objects"]["count"] == 2
+    # a bad groups.json is a note naming it; the fragments still load
+    (ws / "other" / "groups.json").write_text('{"fragments": [{"file": "piece_0.ply", "group": "a"}]}')
+    body = client.get("/api/cases/other/fragments").get_json()
+    assert body["objects"] is None and len(body["fragments"]) == 3
+    assert any("other/groups.json" in n and "fragments[0].group" in n for n in body["notes"])
+    (ws / "other" / "groups.json").write_text("{oops")
+    body = client.get("/api/cases/other/fragments").get_json()
+    assert any("other/groups.json: invalid JSON" in n for n in body["notes"])
+
+
 def test_unknown_host_header_is_refused(client_and_pipeline):
     client, _, _ = client_and_pipeline
     r = client.get("/api/cases", headers={"Host": "attacker.example:8000"})

@@ -304,3 +304,44 @@ def test_demo_case_end_to_end(browser, tmp_path, monkeypatch):
         pg.close()
     finally:
         server.close()
+
+
+def test_object_groups_colour_and_list_the_fragments(browser, tmp_path):
+    """A case with a groups.json (`relicgpu group`): fragments coloured by object group, a legend
+    of the groups, each list row tagged with its object; 'colour by fragment' brings the fragment
+    colours back."""
+    pytest.importorskip("playwright")
+    from relicgpu.viewer.app import create_app, serve_in_thread
+    from test_viewer_api import TruthPipeline, make_box_workspace
+
+    truth = make_box_workspace(tmp_path / "ws", case="heap")
+    objects = {"piece_0": 0, "piece_1": 1, "piece_2": 0}
+    (tmp_path / "ws" / "heap" / "groups.json").write_text(json.dumps(
+        {"version": 1, "method": "average", "fragments": [{"file": f"{n}.ply", "group": g} for n, g in objects.items()]}))
+    pipe = TruthPipeline(truth)
+    server, url = serve_in_thread(create_app(tmp_path / "ws", prepare=pipe.prepare, match_pair=pipe.match_pair))
+    try:
+        pg = new_page(browser)
+        pg.goto(url)
+        pg.wait_for_selector('body[data-state="ready"][data-colour="object"]')
+        assert pg.locator("#colour-select").input_value() == "object"
+        legend = pg.locator("#group-legend span")
+        assert [legend.nth(i).inner_text() for i in range(legend.count())] == ["object 0 (2)", "object 1 (1)"]
+        tags = {n: pg.locator(f'#fragment-list li[data-name="{n}"] .tag').inner_text() for n in objects}
+        assert all(tags[n].startswith(f"object {g}") for n, g in objects.items()), tags
+        swatch = {n: pg.locator(f'#fragment-list li[data-name="{n}"] .swatch').evaluate(
+            "e => getComputedStyle(e).backgroundColor") for n in objects}
+        assert swatch["piece_0"] == swatch["piece_2"] != swatch["piece_1"]
+        assert "2 object groups" in pg.locator("#case-status").inner_text()
+        # group g has fragment g's hue: by object, no pixel has fragment 2's own hue
+        _, by_object = colour_shares(shot(pg, "by-object"), 3)
+        assert by_object[0] > 0.005 and by_object[1] > 0.002 and by_object[2] < 0.0005, by_object
+        pg.select_option("#colour-select", "fragment")
+        pg.wait_for_selector('body[data-colour="fragment"]')
+        _, by_fragment = colour_shares(shot(pg, "by-fragment"), 3)
+        assert by_fragment[2] > 0.002, by_fragment
+        assert pg.locator("#group-legend span").count() == 0
+        assert pg.problems == []
+        pg.close()
+    finally:
+        server.close()

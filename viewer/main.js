@@ -1,6 +1,6 @@
 // The page: case choice, fragment and match lists, view controls, picking head nodes, assembly jobs.
 import * as api from './api.js';
-import { FragmentScene, fragmentColor } from './scene.js';
+import { FragmentScene, fragmentColor, groupColor } from './scene.js';
 
 const $ = (id) => document.getElementById(id);
 const ui = {
@@ -10,16 +10,17 @@ const ui = {
   fragmentList: $('fragment-list'), fragmentCount: $('fragment-count'), matchList: $('match-list'), matchCount: $('match-count'),
   pickBtn: $('pick-btn'), showAllBtn: $('show-all-btn'), pickStatus: $('pick-status'), matchResult: $('match-result'),
   overlay: $('overlay'), host: $('canvas-host'), downloads: $('downloads'),
+  colourSelect: $('colour-select'), groupLegend: $('group-legend'),
 };
 
 const view = new FragmentScene(ui.host);
 const state = {
   caseId: null, info: null, capabilities: {}, fragments: [], matches: [], loadToken: 0,
-  assembledShown: true, picking: false, picks: [], contoursLoaded: 0,
+  assembledShown: true, picking: false, picks: [], contoursLoaded: 0, colourBy: 'fragment',
 };
 
 // For the browser test and for users poking at the console.
-window.relicViewer = { view, state, fragmentColor };
+window.relicViewer = { view, state, fragmentColor, groupColor };
 
 function setStatus(el, text, isError = false) {
   el.textContent = text;
@@ -97,6 +98,7 @@ async function loadCase(caseId) {
   state.info = info;
   state.capabilities = info.capabilities || state.capabilities;
   state.fragments = info.fragments;
+  setColourChoices(info);
   renderFragmentList();
 
   // Meshes, a few at a time.
@@ -120,6 +122,7 @@ async function loadCase(caseId) {
   }
   await Promise.all([worker(), worker(), worker(), worker()]);
   if (stale()) return;
+  applyColours();
 
   const assembled = info.assembled && info.fragments.some((f) => f.placed);
   state.assembledShown = assembled;
@@ -140,6 +143,10 @@ async function loadCase(caseId) {
     const placed = info.fragments.filter((f) => f.placed).length;
     const groups = new Set(info.fragments.filter((f) => f.placed).map((f) => f.group)).size;
     lines.push(`${placed} of ${info.fragments.length} fragments placed, in ${groups} group${groups === 1 ? '' : 's'}`);
+  }
+  if (info.objects) {
+    const n = info.objects.count;
+    lines.push(`sorted into ${n} object group${n === 1 ? '' : 's'} (${info.objects.source}${info.objects.method ? `, ${info.objects.method}` : ''})`);
   }
   if (info.assembly_error) lines.push(info.assembly_error);
   lines.push(...(info.notes || []), ...failures);
@@ -184,6 +191,65 @@ async function loadContours(caseId, stale) {
   document.body.dataset.contours = 'ready';
 }
 
+// --- colours: by fragment, by object group, by assembled piece -------------------------
+
+function colourOf(f) {
+  if (state.colourBy === 'object') return groupColor(f.object);
+  if (state.colourBy === 'assembly') return groupColor(f.placed ? f.group : null);
+  return fragmentColor(f.index);
+}
+
+function setColourChoices(info) {
+  const options = { fragment: true, object: Boolean(info.objects), assembly: Boolean(info.assembled) };
+  for (const opt of ui.colourSelect.options) opt.disabled = !options[opt.value];
+  // A heap sorted into objects is shown by object; otherwise keep the choice while it stays possible.
+  if (info.objects) state.colourBy = 'object';
+  else if (!options[state.colourBy]) state.colourBy = 'fragment';
+  ui.colourSelect.value = state.colourBy;
+  document.body.dataset.colour = state.colourBy;
+}
+
+function applyColours() {
+  for (const f of state.fragments) {
+    view.setColor(f.name, colourOf(f).color);
+    const sw = ui.fragmentList.querySelector(`li[data-name="${CSS.escape(f.name)}"] .swatch`);
+    if (sw) sw.style.background = `#${colourOf(f).color.getHexString()}`;
+  }
+  renderGroupLegend();
+  document.body.dataset.colour = state.colourBy;
+}
+
+function renderGroupLegend() {
+  ui.groupLegend.innerHTML = '';
+  if (state.colourBy === 'fragment') return;
+  const key = state.colourBy === 'object' ? (f) => f.object : (f) => (f.placed ? f.group : null);
+  const members = new Map();
+  for (const f of state.fragments) {
+    const k = key(f) ?? null;
+    if (!members.has(k)) members.set(k, []);
+    members.get(k).push(f.name);
+  }
+  const keys = [...members.keys()].sort((a, b) => (a === null) - (b === null) || a - b);
+  for (const k of keys) {
+    const span = document.createElement('span');
+    span.dataset.group = k === null ? '' : String(k);
+    const sw = document.createElement('i');
+    sw.className = 'swatch';
+    sw.style.background = `#${groupColor(k).color.getHexString()}`;
+    const word = state.colourBy === 'object' ? 'object' : 'piece';
+    const label = k === null ? (state.colourBy === 'object' ? 'no object' : 'unplaced') : `${word} ${k}`;
+    span.append(sw, `${label} (${members.get(k).length})`);
+    span.title = `${members.get(k).join(', ')}: click to frame them`;
+    span.addEventListener('click', () => view.fit(members.get(k)));
+    ui.groupLegend.append(span);
+  }
+}
+
+ui.colourSelect.addEventListener('change', () => {
+  state.colourBy = ui.colourSelect.value;
+  applyColours();
+});
+
 // --- lists -----------------------------------------------------------------------
 
 function renderFragmentList() {
@@ -194,7 +260,7 @@ function renderFragmentList() {
     li.dataset.name = f.name;
     const sw = document.createElement('span');
     sw.className = 'swatch';
-    sw.style.background = `#${fragmentColor(f.index).color.getHexString()}`;
+    sw.style.background = `#${colourOf(f).color.getHexString()}`;
     const cb = document.createElement('input');
     cb.type = 'checkbox';
     cb.checked = true;
@@ -207,7 +273,10 @@ function renderFragmentList() {
     name.title = f.file;
     const tag = document.createElement('span');
     tag.className = 'tag';
-    tag.textContent = state.info.assembled ? (f.placed ? `group ${f.group ?? '?'}` : 'unplaced') : '';
+    const tags = [];
+    if (state.info.objects) tags.push(f.object === null || f.object === undefined ? 'no object' : `object ${f.object}`);
+    if (state.info.assembled) tags.push(f.placed ? `group ${f.group ?? '?'}` : 'unplaced');
+    tag.textContent = tags.join(' · ');
     li.append(cb, sw, name, tag);
     li.addEventListener('click', () => focusFragment(f.name));
     ui.fragmentList.append(li);

@@ -15,6 +15,15 @@ export function fragmentColor(index) {
   return { hue, color: new THREE.Color().setHSL(hue, 0.62, 0.52) };
 }
 
+// Object groups and assembled pieces: the same golden-angle hues, a little darker and more
+// saturated so that a group colour is not read as one fragment's; no group: grey.
+export const NO_GROUP_COLOR = new THREE.Color(0x8a8a8a);
+export function groupColor(group) {
+  if (group === null || group === undefined) return { hue: null, color: NO_GROUP_COLOR.clone() };
+  const hue = (0.03 + group * GOLDEN) % 1;
+  return { hue, color: new THREE.Color().setHSL(hue, 0.75, 0.45) };
+}
+
 const IDENTITY_Q = new THREE.Quaternion();
 
 export class FragmentScene {
@@ -127,6 +136,14 @@ export class FragmentScene {
     this.fragments.set(name, rec);
     this.paintFaces(rec);
     return rec;
+  }
+
+  // Colour one fragment (a THREE.Color); its fracture faces keep their shading.
+  setColor(name, color) {
+    const rec = this.fragments.get(name);
+    if (!rec) return;
+    rec.color = color.clone();
+    this.paintFaces(rec);
   }
 
   paintFaces(rec) {

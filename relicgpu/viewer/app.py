@@ -7,7 +7,7 @@ workspace is. The API (all JSON; errors are `{"error": message}` with a 4xx or
 5xx status):
 
     GET  /api/cases                               the cases of the workspace
-    GET  /api/cases/<case>/fragments              fragments, poses, groups, capabilities
+    GET  /api/cases/<case>/fragments              fragments, poses, groups, object groups, capabilities
     GET  /api/cases/<case>/fragments/<name>/mesh  vertices/faces (base64 float32/uint32)
     GET  /api/cases/<case>/fragments/<name>/contours  segmentation and contours (relicgpu.prepare)
     GET  /api/cases/<case>/matches                the pair matches of assembly.json
@@ -421,6 +421,13 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
             error = str(exc)
         if assembly is not None:
             notes = list(assembly.notes)
+        objects = None
+        try:
+            objects = ws.read_object_groups(case, entries, assembly)
+        except AssemblyFileError as exc:
+            notes.append(str(exc))
+        if objects is not None:
+            notes.extend(objects.notes)
         frags = []
         for i, e in enumerate(entries.values()):
             pose = assembly.poses.get(e.name) if assembly else None
@@ -431,11 +438,14 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
                 "bytes": e.path.stat().st_size,
                 "pose": pose,
                 "group": assembly.groups.get(e.name) if assembly else None,
+                "object": objects.groups.get(e.name) if objects else None,
                 "placed": pose is not None,
             })
         return jsonify(case=case.id, fragments=frags, assembled=assembly is not None,
                        assembly_error=error, notes=notes,
                        assembly=(assembly.meta if assembly else None),
+                       objects=({"source": objects.source, "count": objects.count, "method": objects.method}
+                                if objects else None),
                        files=[n for n in ("assembly.json", "assembly.glb", "merged.stl")
                               if ws.assembly_file(case, n) is not None],
                        capabilities=capabilities)

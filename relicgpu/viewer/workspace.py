@@ -22,6 +22,9 @@ from ..io import MESH_SUFFIXES, POINT_SUFFIXES
 
 FRAGMENT_SUFFIXES = frozenset(MESH_SUFFIXES | POINT_SUFFIXES)
 ASSEMBLY_FILES = ("assembly.json", "assembly.glb", "merged.stl")
+# Where a case may hold the output of `relicgpu group` (groups.json), first found wins; an
+# assembly.json whose fragments carry "object" (`relicgpu assemble --group`) comes before all.
+GROUPS_FILES = ("assembly/groups.json", "groups/groups.json", "groups.json")
 
 
 class WorkspaceError(ValueError):
@@ -57,10 +60,24 @@ class Case:
 class AssemblyView:
     """The parts of assembly.json the viewer uses, keyed by fragment name."""
     poses: dict  # name -> 4x4 nested list, or None when unplaced
-    groups: dict  # name -> int or None
+    groups: dict  # name -> int or None (assembled piece)
     matches: list  # [{"index", "a", "b", "transform", "score", "rmse", "overlap", "used"}]
     meta: dict = field(default_factory=dict)  # backend, engine, timings
     notes: tuple = ()
+    objects: dict = field(default_factory=dict)  # name -> int or None: object group (assemble --group)
+
+
+@dataclass(frozen=True)
+class ObjectGroups:
+    """Which object group each fragment was sorted into (relicgpu.grouping), and from where."""
+    groups: dict  # name -> int or None (not in the file)
+    source: str  # the file, relative to the case
+    method: str | None = None
+    notes: tuple = ()
+
+    @property
+    def count(self) -> int:
+        return len({g for g in self.groups.values() if g is not None})
 
 
 class Workspace:
@@ -149,6 +166,29 @@ class Workspace:
             raise AssemblyFileError(f"{label}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
         return parse_assembly(doc, entries, label)
 
+    def read_object_groups(self, case: Case, entries: dict[str, FragmentEntry],
+                           assembly: AssemblyView | None = None) -> ObjectGroups | None:
+        """The object groups of a case: from assembly.json's "object" fields, else from the first
+        groups.json of GROUPS_FILES; None when there are none. A bad groups.json raises
+        AssemblyFileError naming it."""
+        if assembly is not None and any(g is not None for g in assembly.objects.values()):
+            return ObjectGroups({n: assembly.objects.get(n) for n in entries}, "assembly/assembly.json",
+                                "assemble --group")
+        for rel in GROUPS_FILES:
+            p = case.path / rel
+            if not (p.is_file() and self.contains(p)):
+                continue
+            label = f"{case.id}/{rel}"
+            try:
+                doc = json.loads(p.resolve().read_text(encoding="utf-8"))
+            except UnicodeDecodeError:
+                raise AssemblyFileError(f"{label}: not UTF-8 text") from None
+            except json.JSONDecodeError as exc:
+                raise AssemblyFileError(f"{label}: invalid JSON at line {exc.lineno} column {exc.colno}: "
+                                        f"{exc.msg}") from None
+            return parse_groups(doc, entries, label, rel)
+        return None
+
 
 def _is_dir_inside(p: Path, root: Path) -> bool:
     try:
@@ -200,6 +240,7 @@ def parse_assembly(doc, entries: dict[str, FragmentEntry], label: str = "assembl
         raise AssemblyFileError(f"{label}: 'fragments' must be a list")
     poses: dict = {}
     groups: dict = {}
+    objects: dict = {}
     notes: list[str] = []
     for i, item in enumerate(frags):
         if not isinstance(item, dict):
@@ -210,8 +251,8 @@ def parse_assembly(doc, entries: dict[str, FragmentEntry], label: str = "assembl
             continue
         pose = item.get("pose")
         poses[entry.name] = None if pose is None else _matrix4(pose, f"{label}: fragments[{i}].pose")
-        g = item.get("group")
-        groups[entry.name] = g if isinstance(g, int) and not isinstance(g, bool) else None
+        groups[entry.name] = _int_or_none(item.get("group"))
+        objects[entry.name] = _int_or_none(item.get("object"))
     matches = []
     raw_matches = doc.get("matches", [])
     if not isinstance(raw_matches, list):
@@ -234,4 +275,38 @@ def parse_assembly(doc, entries: dict[str, FragmentEntry], label: str = "assembl
             "used": bool(m.get("used", False)),
         })
     meta = {k: doc[k] for k in ("version", "backend", "engine", "timings") if k in doc}
-    return AssemblyView(poses, groups, matches, meta, tuple(notes))
+    return AssemblyView(poses, groups, matches, meta, tuple(notes), objects)
+
+
+def _int_or_none(value):
+    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else None
+
+
+def parse_groups(doc, entries: dict[str, FragmentEntry], label: str = "groups.json",
+                 source: str = "groups.json") -> ObjectGroups:
+    """Check a groups.json document (`relicgpu group`: {"fragments": [{"file", "group"}], ...})."""
+    if not isinstance(doc, dict):
+        raise AssemblyFileError(f"{label}: the top level must be a JSON object")
+    frags = doc.get("fragments")
+    if not isinstance(frags, list):
+        raise AssemblyFileError(f"{label}: 'fragments' must be a list")
+    groups = {n: None for n in entries}
+    notes = []
+    for i, item in enumerate(frags):
+        if not isinstance(item, dict):
+            raise AssemblyFileError(f"{label}: fragments[{i}] must be an object")
+        g = _int_or_none(item.get("group"))
+        if g is None:
+            raise AssemblyFileError(f"{label}: fragments[{i}].group must be a whole number >= 0, "
+                                    f"got {item.get('group')!r}")
+        entry = _entry_for(item.get("file"), entries)
+        if entry is None:
+            notes.append(f"{label}: fragments[{i}] names {item.get('file')!r}, which is not in fragments/")
+            continue
+        groups[entry.name] = g
+    missing = [n for n, g in groups.items() if g is None]
+    if missing:
+        notes.append(f"{label}: {len(missing)} fragment(s) in no group: {', '.join(missing[:5])}"
+                     + (" …" if len(missing) > 5 else ""))
+    method = doc.get("method") if isinstance(doc.get("method"), str) else None
+    return ObjectGroups(groups, source, method, tuple(notes))
