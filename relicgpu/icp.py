@@ -157,11 +157,15 @@ def facing_poses(centre_a, normal_a, centre_b, normal_b, steps: int) -> np.ndarr
 
 
 def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backend, iterations: int,
-                reject: float, floor: float, tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                reject: float, floor: float, tolerance: float = 0.0, trim: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """ICP (Alg. 5, as `icp`) for many starting poses at once: every round is ONE nearest-neighbour
     launch over all hypotheses' points. Stops after `iterations` rounds or when no hypothesis's
     mean distance changes by `tolerance` or more. Returns the poses and each one's share of source
-    points ending within `floor` of the target."""
+    points ending within `floor` of the target.
+
+    Pairs count when nearer than 3x the `trim` quantile of the distances (within [floor, reject]):
+    where only part of the source touches the target (a partial contact) a low quantile keeps
+    the rest of the source from dragging the fit off."""
     poses = np.array(poses, np.float64)
     h, n = len(poses), len(source)
     share = np.zeros(h)
@@ -171,7 +175,7 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
         idx, dist = backend.nearest_neighbors(moved.reshape(-1, 3), target)
         idx = np.asarray(idx, np.int64).reshape(h, n)
         dist = np.asarray(dist, np.float64).reshape(h, n)
-        cutoff = np.maximum(floor, np.minimum(reject, 3.0 * np.median(dist, axis=1)))
+        cutoff = np.maximum(floor, np.minimum(reject, 3.0 * np.quantile(dist, trim, axis=1)))
         w = (dist < cutoff[:, None]).astype(np.float64)
         share = (dist < floor).mean(axis=1)
         wsum = np.maximum(w.sum(axis=1), 1e-12)

@@ -42,9 +42,11 @@ class Params:
     ransac_iterations: int = 400
     ransac_inlier: float = 0.02      # correspondence inlier distance for the LCS pose
     hypotheses: int = 6              # coarse poses handed to ICP per pair
-    descriptor_radius: float = 0.08  # spin images of fracture points (0 turns these starts off) ...
-    descriptor_inlier: float = 0.02  # ... RANSAC over their matches, inlier distance
-    descriptor_starts: int = 8       # ... poses kept
+    ppf_points: int = 800            # fracture points voting with point-pair features (0 turns these starts off)
+    ppf_normal_radius: float = 0.04  # ... their normals: plane fits over this radius
+    ppf_distance_step: float = 0.03  # ... feature quantisation: distance ...
+    ppf_angle_step_deg: float = 12.0  # ... and angles
+    ppf_starts: int = 24             # ... poses kept (best-voted reference points)
     max_patches: int = 3             # fracture patches per fragment tried face to face ...
     min_patch_share: float = 0.15    # ... if at least this share of the largest patch's area
     patch_turns: int = 12            # turns about the common normal tried per patch pair
@@ -61,10 +63,11 @@ class Params:
     verify_at_most: int = 6          # fits verified per pair, best-touching first, until one is accepted
     plane_iterations: int = 8        # point-to-plane polish after ICP
     icp_reject: float = 0.03         # nearest pairs farther than this are not used in the fit
+    icp_trim: float = 0.2            # ... nor those farther than 3x this quantile of the distances
 
     # verification
     contact_distance: float = 0.01   # a point within this of the other fracture surface is in contact
-    min_overlap: float = 0.25        # share of the smaller fracture surface in contact
+    min_overlap: float = 0.12        # share of either fracture sample in contact (partial contacts: 0.12-0.5)
     max_rmse: float = 0.0028         # RMS point-to-plane distance over the contact
     max_penetration: float = 0.06    # share of surface points deeper than penetration_depth inside the other
     penetration_depth: float = 0.015

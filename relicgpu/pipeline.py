@@ -14,9 +14,10 @@ from . import contour as contour_mod
 from . import features as features_mod
 from . import fusion as fusion_mod
 from .backends import resolve
-from .icp import batched_icp, facing_poses, ransac_poses, refine_point_to_plane
+from .icp import _same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
 from .io import Fragment
 from .params import Params
+from .ppf import ppf_poses, smoothed_normals
 from .segment import segment
 from .verify import SurfaceSample, verify, vertex_normals
 
@@ -99,13 +100,13 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     t2 = time.perf_counter()
     timings["contours+features"] = t2 - t1
 
-    sample = _surface_sample(fragment, seg, params.icp_points)
+    sample = _surface_sample(fragment, seg, params.icp_points, params.ppf_normal_radius * scale)
     patches = fracture_patches(fragment, seg)
     timings["sample"] = time.perf_counter() - t2
     return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, patches, timings)
 
 
-def _surface_sample(fragment: Fragment, seg, n_points: int) -> SurfaceSample:
+def _surface_sample(fragment: Fragment, seg, n_points: int, plane_radius: float) -> SurfaceSample:
     """Deterministic subsample of fracture-face vertices and of all vertices (with normals)."""
     v, f = fragment.vertices, fragment.faces
     normals = vertex_normals(v, f, seg.normals, seg.areas)
@@ -119,7 +120,9 @@ def _surface_sample(fragment: Fragment, seg, n_points: int) -> SurfaceSample:
     surf = np.arange(len(v))
     if len(surf) > 2 * n_points:
         surf = np.sort(rng.choice(surf, 2 * n_points, replace=False))
-    return SurfaceSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf], normals[surf])
+    plane_normals = smoothed_normals(v[frac_vertices], normals[frac_vertices], plane_radius)
+    return SurfaceSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf], normals[surf],
+                         plane_normals)
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,24 @@ def fracture_patches(fragment: Fragment, seg) -> list[Patch]:
             continue
         out.append(Patch(int(r), (centres[m] * w[:, None]).sum(0) / w.sum(), n / np.linalg.norm(n), float(w.sum())))
     return sorted(out, key=lambda p: -p.area)
+
+
+def _distinct(poses: np.ndarray, order: np.ndarray, count: int, tol: float) -> list[int]:
+    """The first `count` of `order` whose poses differ from every one taken before (many starts
+    converge to one pose; copies would crowd the others out of the hypotheses)."""
+    taken: list[int] = []
+    for k in order:
+        if len(taken) == count:
+            break
+        if not any(_same_pose(poses[k], poses[t], tol) for t in taken):
+            taken.append(int(k))
+    return taken
+
+
+def _ppf_sample(sample: SurfaceSample, n: int) -> tuple[np.ndarray, np.ndarray]:
+    idx = np.linspace(0, len(sample.fracture) - 1, min(n, len(sample.fracture))).astype(np.int64)
+    normals = sample.fracture_plane_normals if sample.fracture_plane_normals is not None else sample.fracture_normals
+    return sample.fracture[idx], normals[idx]
 
 
 def _main_patches(patches, params: Params):
@@ -200,8 +221,8 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
 
     rng = np.random.default_rng(12345)
     inlier = params.ransac_inlier * scale
-    # Coarse poses, two sources: the paper's LCS over fused contour values (RANSAC over its
-    # correspondences), and fracture patches put face to face at a sweep of turns.
+    # Coarse poses, three sources: the paper's LCS over fused contour values (RANSAC over its
+    # correspondences), point-pair-feature votes, and fracture patches put face to face at a sweep of turns.
     starts, origins = [], []  # (4,4) poses; (source, contour_a, contour_b, lcs pairs)
     for ca, cb, ha, hb in contour_pairs:
         A, B = pa.contours[ca], pb.contours[cb]
@@ -212,19 +233,13 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
             for pose, count in ransac_poses(src, dst, params.ransac_iterations, inlier, rng, keep=2):
                 starts.append(pose)
                 origins.append(("lcs", ca, cb, m.pairs))
-    if heads is None and params.descriptor_radius > 0:
-        from .descriptors import descriptor_correspondences, spin_images
-
-        radius = params.descriptor_radius * scale
-        da = spin_images(pa.sample.fracture, pa.sample.fracture_normals, radius)
-        db = spin_images(pb.sample.fracture, pb.sample.fracture_normals, radius, flip=True)
-        pairs = descriptor_correspondences(da, db)
-        if len(pairs) >= 3:
-            src, dst = pb.sample.fracture[pairs[:, 1]], pa.sample.fracture[pairs[:, 0]]
-            for pose, count in ransac_poses(src, dst, params.ransac_iterations * 2, params.descriptor_inlier * scale,
-                                            rng, keep=params.descriptor_starts):
-                starts.append(pose)
-                origins.append(("descriptor", -1, -1, np.zeros((0, 2), np.int64)))
+    if heads is None and params.ppf_points > 0:
+        # point-pair-feature votes: finds contacts that cover only part of each fracture surface
+        (xa, na), (xb, nb) = (_ppf_sample(q.sample, params.ppf_points) for q in (pa, pb))
+        for pose, votes in ppf_poses(xa, na, xb, -nb, params.ppf_distance_step * scale, params.ppf_angle_step_deg,
+                                     keep=params.ppf_starts):
+            starts.append(pose)
+            origins.append(("ppf", -1, -1, np.zeros((0, 2), np.int64)))
     if heads is None:
         for P in _main_patches(pa.patches, params):
             for Q in _main_patches(pb.patches, params):
@@ -237,12 +252,12 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
         sub_b = pb.sample.fracture[:: max(1, len(pb.sample.fracture) // params.screen_points)]
         reject, floor = params.screen_reject * scale, params.contact_distance * scale
         poses, share = batched_icp(sub_b, pa.sample.fracture, np.array(starts), be, params.screen_iterations,
-                                   reject, floor)
+                                   reject, floor, trim=params.icp_trim)
         # the most promising starts go on longer (a start can be 20 degrees off)
         keep = np.argsort(-share, kind="stable")[: params.screen_keep]
         poses, share = batched_icp(sub_b, pa.sample.fracture, poses[keep], be, params.screen_more_iterations,
-                                   reject, floor)
-        order = np.argsort(-share, kind="stable")[: params.hypotheses]
+                                   reject, floor, trim=params.icp_trim)
+        order = _distinct(poses, np.argsort(-share, kind="stable"), params.hypotheses, 0.02 * scale)
         candidates = [(share[k], poses[k], *origins[keep[k]][1:]) for k in order]
     timings["coarse"] = time.perf_counter() - t0
 
@@ -252,7 +267,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
         # ICP of all hypotheses together (one nearest-neighbour launch per round), then each polished
         fine, share = batched_icp(pb.sample.fracture, pa.sample.fracture, np.array([c[1] for c in candidates]), be,
                                   params.icp_iterations, params.icp_reject * scale, params.contact_distance * scale,
-                                  params.icp_tolerance * scale)
+                                  params.icp_tolerance * scale, params.icp_trim)
         for k in np.argsort(-share, kind="stable")[: params.verify_at_most]:
             polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
                                              fine[k], be, params.plane_iterations, params.contact_distance * scale)

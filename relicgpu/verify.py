@@ -31,6 +31,7 @@ class SurfaceSample:
     fracture_normals: np.ndarray  # (P,3) outward unit normals there
     surface: np.ndarray  # (Q,3) points of the whole surface
     normals: np.ndarray  # (Q,3) outward unit normals at `surface`
+    fracture_plane_normals: np.ndarray | None = None  # (P,3) normals of local plane fits at `fracture`
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, areas: np.ndarray) -> np.ndarray:
