@@ -26,6 +26,16 @@ Bowyer-Watson; here the Delaunay step is Qhull's (scipy.spatial.Delaunay) in
    pinched off are dropped, and the copies of a split point are moved 10% into
    their own sheets, so that the result is one closed manifold with no two
    vertices at one place.
+7. Refine: the boundary of a Delaunay tetrahedralisation of random samples holds
+   triangles standing across the surface (where four samples are nearly
+   co-circular) and, with scanner noise, rough ones everywhere. The segmentation
+   reads rough triangles as fracture surface, so (a) edges are flipped where the
+   two new triangles agree better with the cloud's normals (principal axes of the
+   nearest NORMAL_NEIGHBOURS points), (b) each vertex moves to the point nearest
+   to the planes of the triangles within SMOOTH_RINGS edge steps (a quadric, with
+   a pull of SMOOTH_STAY to where it was, so it slides little along the surface,
+   creases keep their place and rough fracture stays rough), (c) edges are flipped
+   again. Flips keep the mesh a closed manifold.
 
 Limits: features smaller than alpha (a few point spacings) are bridged, walls
 need a few spacings of thickness, a scan with holes wider than alpha is closed
@@ -67,6 +77,17 @@ SMOOTH_ROUNDS = 3
 # Copies of a point where the surface touches itself move this fraction of the way
 # to the centre of their own ring of neighbours.
 SPLIT_NUDGE = 0.1
+# Refinement (step 7): unit normals of the cloud from this many nearest points; rounds of
+# edge flips; the vertex move's neighbourhood (edge steps) and its pull to the old position.
+NORMAL_NEIGHBOURS = 16
+FLIP_ROUNDS = 12
+FLIP_MARGIN = 1e-3
+SMOOTH_RINGS = 2
+SMOOTH_STAY = 0.2
+# load_fragment thins a cloud to this many points before meshing: the density (about 20k
+# faces per fragment) at which the matcher's segmentation was measured to work (see
+# tests/test_pointcloud.py); `relicgpu mesh` keeps MAX_POINTS.
+MATCH_POINTS = 12_000
 
 
 @dataclass(frozen=True)
@@ -816,11 +837,13 @@ def _median_spacing(q: np.ndarray) -> float:
 
 
 def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: float = ALPHA_FACTOR,
-                progress: bool = False, label: str = "points", debug: bool = False) -> MeshResult:
+                refine: bool = True, progress: bool = False, label: str = "points",
+                debug: bool = False) -> MeshResult:
     """Mesh a point cloud sampled from the surface of one solid into a closed, outward-wound triangle mesh.
 
     max_points: thin larger clouds on a voxel grid first (None: never).
     alpha_factor: the first alpha, in median point spacings (it grows while the flood leaks).
+    refine: flip edges and move vertices towards the cloud's surface (step 7 of the module notes).
     debug: print the figures of each alpha tried to stderr.
     """
     from tqdm import tqdm
@@ -831,7 +854,7 @@ def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: fl
     _check_points(pts, label)
     timings: dict[str, float] = {}
     notes: list[str] = []
-    bar = tqdm(total=5, desc=f"mesh {Path(label).name}", unit="step", disable=not progress, file=sys.stderr, leave=False)
+    bar = tqdm(total=6, desc=f"mesh {Path(label).name}", unit="step", disable=not progress, file=sys.stderr, leave=False)
     t0 = time.perf_counter()
     voxel = 0.0
     if max_points and len(pts) > max_points:
@@ -948,9 +971,162 @@ def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: fl
     coverage = len(np.unique(source)) / len(q)
     timings["repair"] = time.perf_counter() - t0
     bar.update()
+    if refine:
+        t0 = time.perf_counter()
+        refined = refine_surface(vertices, faces, pts)
+        if refined is None:
+            notes.append(f"{label}: the surface was left unrefined (some edges are not shared by exactly two faces)")
+        else:
+            vertices, faces = refined
+        timings["refine"] = time.perf_counter() - t0
+    bar.update()
     bar.close()
     return MeshResult(vertices, faces, len(points), len(pts), voxel, spacing * scale, alpha * scale,
                       coverage, timings, tuple(notes))
+
+
+# --- refinement ------------------------------------------------------------
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    length = np.linalg.norm(x, axis=-1, keepdims=True)
+    return x / np.where(length > 0, length, 1.0)
+
+
+def _area_vectors(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Per face, the normal scaled by twice the area."""
+    return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+
+
+def cloud_normals(vertices: np.ndarray, faces: np.ndarray, cloud: np.ndarray,
+                  k: int = NORMAL_NEIGHBOURS) -> np.ndarray:
+    """Unit normal at each vertex: the least principal axis of its k nearest cloud points,
+    turned to agree with the mesh's area-weighted vertex normal (outwards)."""
+    from scipy.spatial import cKDTree
+
+    k = min(k, len(cloud))
+    _, idx = cKDTree(cloud).query(vertices, k=k, workers=-1)
+    normals = np.empty_like(vertices)
+    for s in range(0, len(vertices), 200_000):
+        nb = cloud[idx[s:s + 200_000]]
+        nb = nb - nb.mean(axis=1, keepdims=True)
+        _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+        normals[s:s + 200_000] = vec[:, :, 0]
+    mesh_normals = np.zeros_like(vertices)
+    area = _area_vectors(vertices, faces)
+    for c in range(3):
+        for axis in range(3):
+            mesh_normals[:, axis] += np.bincount(faces[:, c], area[:, axis], minlength=len(vertices))
+    return normals * np.where(np.einsum("ij,ij->i", normals, mesh_normals) < 0, -1.0, 1.0)[:, None]
+
+
+def _edge_pairs(faces: np.ndarray):
+    """For each edge of a closed manifold: its ends (a, b) as in the first face, the vertex
+    opposite in that face (c) and in the other (d), both faces, and the sorted edge keys.
+    None when some edge is not shared by exactly two faces."""
+    nf, n = len(faces), int(faces.max()) + 1
+    a, b, c = faces.ravel(), np.roll(faces, -1, axis=1).ravel(), np.roll(faces, -2, axis=1).ravel()
+    key = np.minimum(a, b) * n + np.maximum(a, b)
+    order = np.argsort(key, kind="stable")
+    k = key[order]
+    if len(k) % 2 or not np.array_equal(k[0::2], k[1::2]) or (len(k) > 2 and (k[2::2] == k[1:-1:2]).any()):
+        return None
+    h1, h2 = order[0::2], order[1::2]
+    face = np.arange(3 * nf) // 3
+    return a[h1], b[h1], c[h1], c[h2], face[h1], face[h2], k[0::2], n
+
+
+def flip_edges(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, rounds: int = FLIP_ROUNDS):
+    """Flip edges where both new triangles agree better with the vertex normals than the old
+    pair's worse one did (by cosine to the mean normal of their corners). Each round flips an
+    independent set of edges (no face twice) whose new edge does not exist yet, so the mesh
+    stays a closed manifold. Returns the new faces (None if the mesh is not a closed
+    manifold) and the number of flips."""
+    f = np.asarray(faces, np.int64).copy()
+    v = vertices
+    # a flip that leaves a triangle of (nearly) no area would have no trustworthy normal
+    tiny = 1e-12 * float(np.ptp(v, axis=0).max()) ** 2
+    total = 0
+
+    def agreement(t):
+        area = _area_vectors(v, t)
+        cos = np.einsum("ij,ij->i", _unit(area), _unit(normals[t].sum(axis=1)))
+        return np.where(np.einsum("ij,ij->i", area, area) > tiny ** 2, cos, -2.0)
+
+    for _ in range(rounds):
+        pairs = _edge_pairs(f)
+        if pairs is None:
+            return None, total
+        a, b, c, d, f1, f2, keys, n = pairs
+        t1, t2 = np.stack([a, d, c], 1), np.stack([d, b, c], 1)
+        old = np.minimum(agreement(np.stack([a, b, c], 1)), agreement(np.stack([b, a, d], 1)))
+        new = np.minimum(agreement(t1), agreement(t2))
+        new_key = np.minimum(c, d) * n + np.maximum(c, d)
+        cand = np.nonzero((new > old + FLIP_MARGIN) & (c != d))[0]
+        cand = cand[~np.isin(new_key[cand], keys)]
+        if len(cand) == 0:
+            break
+        cand = cand[np.argsort(old[cand] - new[cand], kind="stable")]  # largest gain first
+        rank = np.arange(len(cand))
+        first = np.full(len(f), len(cand))
+        np.minimum.at(first, np.concatenate([f1[cand], f2[cand]]), np.concatenate([rank, rank]))
+        cand = cand[(first[f1[cand]] == rank) & (first[f2[cand]] == rank)]
+        _, once = np.unique(new_key[cand], return_index=True)  # two flips must not make one edge
+        cand = cand[np.sort(once)]
+        f[f1[cand]] = t1[cand]
+        f[f2[cand]] = t2[cand]
+        total += len(cand)
+    return f, total
+
+
+def quadric_smooth(vertices: np.ndarray, faces: np.ndarray, rings: int = SMOOTH_RINGS,
+                   stay: float = SMOOTH_STAY) -> np.ndarray:
+    """Move each vertex to the point nearest (least squares) to the planes of the triangles
+    within `rings` edge steps, weighted by area, plus `stay` times their summed weight (the
+    trace of the plane quadric) pulling it to where it was. On a smooth patch this removes noise across the surface and
+    barely moves along it; at a crease the planes of both sides hold it on the crease."""
+    from scipy.sparse import coo_matrix
+
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    nv, nf = len(v), len(f)
+    area_vec = _area_vectors(v, f)
+    area = 0.5 * np.linalg.norm(area_vec, axis=1)
+    normal = _unit(area_vec)
+    centre = v[f].mean(axis=1)
+    nn = np.einsum("fi,fj->fij", normal, normal) * area[:, None, None]
+    q = np.concatenate([nn.reshape(nf, 9), np.einsum("fij,fj->fi", nn, centre)], axis=1)
+    incidence = coo_matrix((np.ones(3 * nf), (f.ravel(), np.repeat(np.arange(nf), 3))), shape=(nv, nf)).tocsr()
+    acc = incidence @ q
+    if rings > 1:
+        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        adjacency = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                               shape=(nv, nv)).tocsr()
+        adjacency.data[:] = 1.0
+        for _ in range(rings - 1):
+            acc = acc + adjacency @ acc
+    mat = acc[:, :9].reshape(nv, 3, 3)
+    pull = stay * np.trace(mat, axis1=1, axis2=2)
+    mat = mat + pull[:, None, None] * np.eye(3)
+    rhs = acc[:, 9:] + pull[:, None] * v
+    moved = v.copy()
+    ok = pull > 0
+    moved[ok] = np.linalg.solve(mat[ok], rhs[ok][:, :, None])[:, :, 0]
+    return moved
+
+
+def refine_surface(vertices: np.ndarray, faces: np.ndarray, cloud: np.ndarray):
+    """Step 7 of the module notes: flips by the cloud's normals, one quadric smoothing, flips
+    again. Returns (vertices, faces), or None when the mesh is not a closed manifold."""
+    f = np.asarray(faces, np.int64)
+    normals = cloud_normals(vertices, f, cloud)
+    f, _ = flip_edges(vertices, f, normals)
+    if f is None:
+        return None
+    v = quadric_smooth(vertices, f)
+    f, _ = flip_edges(v, f, normals)
+    if f is None:
+        return None
+    return v, f.astype(np.int32)
 
 
 def closed_manifold_fault(vertices: np.ndarray, faces: np.ndarray) -> str | None:
