@@ -88,7 +88,8 @@ def _keys(q: np.ndarray, angle_bins: int) -> np.ndarray:
 
 def ppf_poses(a_points: np.ndarray, a_normals: np.ndarray, b_points: np.ndarray, b_normals: np.ndarray,
               dist_step: float, angle_step_deg: float = 12.0, alpha_bins: int = 30, reference_stride: int = 3,
-              max_distance: float | None = None, keep: int = 24) -> list[tuple[np.ndarray, int]]:
+              max_distance: float | None = None, keep: int = 24,
+              bucket_cap: int = 32) -> list[tuple[np.ndarray, int]]:
     """Poses carrying b onto a where b's surface (normals as given, i.e. already flipped for a
     mating surface) lies on a's; up to `keep`, most votes first, with their vote counts."""
     na, nb = len(a_points), len(b_points)
@@ -121,12 +122,15 @@ def ppf_poses(a_points: np.ndarray, a_normals: np.ndarray, b_points: np.ndarray,
     alpha_b = _alphas(fb, r, b_points[s])
     lo = np.searchsorted(key_a, key_b, "left")
     hi = np.searchsorted(key_a, key_b, "right")
-    counts = hi - lo
+    found = hi - lo
+    # A feature shared by many pairs (a flat stretch) says little and would flood the votes:
+    # each scene pair votes with at most `bucket_cap` of its model pairs, spread over the bucket.
+    counts = np.minimum(found, bucket_cap)
     if counts.sum() == 0:
         return []
-    # expand every scene pair into its matching model pairs
     scene = np.repeat(np.arange(len(key_b)), counts)
-    model = np.repeat(lo - np.cumsum(np.concatenate([[0], counts[:-1]])), counts) + np.arange(counts.sum())
+    rank = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    model = lo[scene] + rank * found[scene] // counts[scene]
     alpha = alpha_a[model] - alpha_b[scene]
     abin = np.floor((alpha + np.pi) / (2 * np.pi) * alpha_bins).astype(np.int64) % alpha_bins
     ref_index = np.searchsorted(refs, r[scene])

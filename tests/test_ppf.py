@@ -1,0 +1,83 @@
+"""Point-pair-feature voting (coarse poses for partial contacts) and trimmed batched ICP."""
+import numpy as np
+import pytest
+
+from relicgpu.backends import get_backend
+from relicgpu.icp import apply, axis_rotation, batched_icp, rotation_angle_deg
+from relicgpu.ppf import smoothed_normals, ppf_poses
+
+
+def _rough_sheet(rng, n=900, size=1.0):
+    """Points of a rough height field z = h(x, y) with their upward normals."""
+    xy = rng.uniform(-size / 2, size / 2, (n, 2))
+    k = rng.normal(0, 6, (6, 2))
+    ph = rng.uniform(0, 2 * np.pi, 6)
+    amp = 0.04 / np.arange(1, 7)
+    z = (amp * np.sin(xy @ k.T + ph)).sum(1)
+    grad = (amp * np.cos(xy @ k.T + ph)) @ k
+    normals = np.column_stack([-grad, np.ones(n)])
+    return np.column_stack([xy, z]), normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def _random_pose(rng, shift=1.0):
+    axis = rng.normal(size=3)
+    t = np.eye(4)
+    t[:3, :3] = axis_rotation(axis / np.linalg.norm(axis), rng.uniform(0.5, 3.0))[:3, :3]
+    t[:3, 3] = rng.normal(0, shift, 3)
+    return t
+
+
+def test_smoothed_normals_of_a_noisy_plane_are_the_plane_normal_and_keep_orientation():
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-1, 1, (500, 2)), rng.normal(0, 1e-3, 500)])
+    given = np.tile([0.0, 0.3, -1.0], (500, 1))  # rough guess, pointing down
+    n = smoothed_normals(pts, given, 0.3)
+    assert np.allclose(n, [0, 0, -1], atol=0.02)
+    assert smoothed_normals(pts[:2], given[:2], 0.3).shape == (2, 3)  # too few points: given back
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_ppf_finds_a_mating_surface_that_covers_a_third_of_each_side(seed):
+    rng = np.random.default_rng(seed)
+    pts, nrm = _rough_sheet(rng)
+    # a: the left two thirds of the sheet; b: the right two thirds, seen from the other side
+    # (normals flipped), moved away. They share the middle third.
+    a = pts[:, 0] < 1 / 6
+    b = pts[:, 0] > -1 / 6
+    truth = _random_pose(rng)
+    b_pts, b_nrm = apply(np.linalg.inv(truth), pts[b]), -nrm[b] @ np.linalg.inv(truth)[:3, :3].T
+    poses = ppf_poses(pts[a], nrm[a], b_pts, -b_nrm, dist_step=0.03, keep=10)
+    assert poses and all(v1 >= v2 for (_, v1), (_, v2) in zip(poses, poses[1:]))
+    errors = [(rotation_angle_deg(p[:3, :3] @ truth[:3, :3].T), np.linalg.norm(apply(p, b_pts) - pts[b], axis=1).max())
+              for p, _ in poses[:3]]
+    assert min(e[0] for e in errors) < 8.0
+    assert min(e[1] for e in errors) < 0.1
+
+
+def test_ppf_on_too_few_points_gives_nothing():
+    assert ppf_poses(np.zeros((2, 3)), np.tile([0, 0, 1.0], (2, 1)), np.zeros((5, 3)),
+                     np.tile([0, 0, 1.0], (5, 1)), 0.1) == []
+    assert ppf_poses(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), 0.1) == []
+
+
+def test_trimmed_icp_converges_on_a_partial_overlap_where_the_median_rule_is_dragged_off():
+    rng = np.random.default_rng(4)
+    pts, _ = _rough_sheet(rng, n=2000, size=1.0)
+    target = pts[pts[:, 0] < -0.1]
+    source_true = pts[pts[:, 0] > -0.35]  # a quarter of the source on the target, the rest beyond its edge
+    # the source's free part bends away at ~56 degrees (another fracture facet)
+    bend = source_true[:, 0] > -0.1
+    source_true = source_true.copy()
+    source_true[bend, 2] += 1.5 * (source_true[bend, 0] + 0.1)
+    start = np.eye(4)
+    start[:3, :3] = axis_rotation(np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2]), np.radians(3))[:3, :3]
+    start[:3, 3] = [0.02, -0.01, 0.015]
+    source = apply(np.linalg.inv(start), source_true)
+    be = get_backend("numpy")
+    trimmed, _ = batched_icp(source, target, np.eye(4)[None], be, 40, 0.3, 0.01, trim=0.2)
+    median, _ = batched_icp(source, target, np.eye(4)[None], be, 40, 0.3, 0.01, trim=0.5)
+
+    def err(p):
+        return np.linalg.norm(apply(p, source) - source_true, axis=1).max()
+    assert err(trimmed[0]) < 0.005
+    assert err(median[0]) > 0.1
