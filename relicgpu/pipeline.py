@@ -17,7 +17,7 @@ from .backends import resolve
 from .icp import _same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
 from .io import Fragment
 from .params import Params
-from .ppf import ppf_poses, smoothed_normals
+from .ppf import PairTable, pair_table, smoothed_normals, vote_poses
 from .segment import segment
 from .verify import SurfaceSample, verify, vertex_normals
 
@@ -162,10 +162,27 @@ def _distinct(poses: np.ndarray, order: np.ndarray, count: int, tol: float) -> l
     return taken
 
 
-def _ppf_sample(sample: SurfaceSample, n: int) -> tuple[np.ndarray, np.ndarray]:
-    idx = np.linspace(0, len(sample.fracture) - 1, min(n, len(sample.fracture))).astype(np.int64)
+_PPF_TABLES: dict = {}  # id(sample) -> (sample, settings, table): a fragment meets many partners
+
+
+def _ppf_table(sample: SurfaceSample, params: Params, scale: float, role: str) -> PairTable:
+    """The point-pair table of a fragment's fracture sample, as model (a) or as scene (b: normals
+    flipped, every third point a reference), built once per fragment and kept for a few."""
+    settings = (role, params.ppf_points, params.ppf_distance_step * scale, params.ppf_angle_step_deg)
+    hit = _PPF_TABLES.get((id(sample), role))
+    if hit is not None and hit[0] is sample and hit[1] == settings:
+        return hit[2]
+    idx = np.linspace(0, len(sample.fracture) - 1, min(params.ppf_points, len(sample.fracture))).astype(np.int64)
     normals = sample.fracture_plane_normals if sample.fracture_plane_normals is not None else sample.fracture_normals
-    return sample.fracture[idx], normals[idx]
+    points, normals = sample.fracture[idx], normals[idx]
+    if role == "model":
+        table = pair_table(points, normals, settings[2], params.ppf_angle_step_deg)
+    else:
+        table = pair_table(points, -normals, settings[2], params.ppf_angle_step_deg, reference_stride=3, sort=False)
+    while len(_PPF_TABLES) >= 12:
+        _PPF_TABLES.pop(next(iter(_PPF_TABLES)))
+    _PPF_TABLES[(id(sample), role)] = (sample, settings, table)
+    return table
 
 
 def _main_patches(patches, params: Params):
@@ -235,9 +252,8 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
                 origins.append(("lcs", ca, cb, m.pairs))
     if heads is None and params.ppf_points > 0:
         # point-pair-feature votes: finds contacts that cover only part of each fracture surface
-        (xa, na), (xb, nb) = (_ppf_sample(q.sample, params.ppf_points) for q in (pa, pb))
-        for pose, votes in ppf_poses(xa, na, xb, -nb, params.ppf_distance_step * scale, params.ppf_angle_step_deg,
-                                     keep=params.ppf_starts):
+        model, scene = _ppf_table(pa.sample, params, scale, "model"), _ppf_table(pb.sample, params, scale, "scene")
+        for pose, votes in vote_poses(model, scene, keep=params.ppf_starts):
             starts.append(pose)
             origins.append(("ppf", -1, -1, np.zeros((0, 2), np.int64)))
     if heads is None:

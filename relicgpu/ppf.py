@@ -16,6 +16,8 @@ give poses even when the contact is a fifth of each surface.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -86,58 +88,64 @@ def _keys(q: np.ndarray, angle_bins: int) -> np.ndarray:
     return ((q[:, 0] * angle_bins + q[:, 1]) * angle_bins + q[:, 2]) * angle_bins + q[:, 3]
 
 
-def ppf_poses(a_points: np.ndarray, a_normals: np.ndarray, b_points: np.ndarray, b_normals: np.ndarray,
-              dist_step: float, angle_step_deg: float = 12.0, alpha_bins: int = 30, reference_stride: int = 3,
-              max_distance: float | None = None, keep: int = 24,
-              bucket_cap: int = 32) -> list[tuple[np.ndarray, int]]:
-    """Poses carrying b onto a where b's surface (normals as given, i.e. already flipped for a
-    mating surface) lies on a's; up to `keep`, most votes first, with their vote counts."""
-    na, nb = len(a_points), len(b_points)
-    if na < 3 or nb < 3:
-        return []
+@dataclass(frozen=True, eq=False)
+class PairTable:
+    """Quantised features of point pairs (ref, other) of one oriented point set, sorted by key
+    when it is the model side. Depends on the points and the quantisation only, so a fragment's
+    tables can be built once and used against every partner."""
+    frames: np.ndarray  # (N,4,4) point to origin, normal onto +x
+    key: np.ndarray  # (M,) int64
+    ref: np.ndarray  # (M,) the pair's reference point
+    alpha: np.ndarray  # (M,) angle of the other point about +x in the reference's frame
+    n_points: int
+    references: np.ndarray  # the points used as references
+
+
+def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_step_deg: float = 12.0,
+               reference_stride: int = 1, max_distance: float | None = None, sort: bool = True) -> PairTable:
+    """Every pair (ref, other) with ref among every `reference_stride`-th point."""
+    n = len(points)
     angle_step = np.radians(angle_step_deg)
     angle_bins = int(np.ceil(np.pi / angle_step)) + 1
-    fa, fb = _frames(a_points, a_normals), _frames(b_points, b_normals)
-
-    # model table: every ordered pair of a (within max_distance), sorted by key
-    i, j = np.nonzero(~np.eye(na, dtype=bool))
+    frames = _frames(points, normals) if n else np.zeros((0, 4, 4))
+    refs = np.arange(0, n, max(1, reference_stride))
+    r = np.repeat(refs, n)
+    o = np.tile(np.arange(n), len(refs))
+    ok = r != o
     if max_distance is not None:
-        near = np.linalg.norm(a_points[j] - a_points[i], axis=1) <= max_distance
-        i, j = i[near], j[near]
-    key_a = _keys(_pair_features(a_points[i], a_normals[i], a_points[j], a_normals[j], dist_step, angle_step),
-                  angle_bins)
-    alpha_a = _alphas(fa, i, a_points[j])
-    order = np.argsort(key_a, kind="stable")
-    key_a, ref_a, alpha_a = key_a[order], i[order], alpha_a[order]
+        ok &= np.linalg.norm(points[o] - points[r], axis=1) <= max_distance
+    r, o = r[ok], o[ok]
+    key = _keys(_pair_features(points[r], normals[r], points[o], normals[o], dist_step, angle_step), angle_bins)
+    alpha = _alphas(frames, r, points[o])
+    if sort:
+        order = np.argsort(key, kind="stable")
+        key, r, alpha = key[order], r[order], alpha[order]
+    return PairTable(frames, key, r.astype(np.int32), alpha.astype(np.float32), n, refs)
 
-    refs = np.arange(0, nb, max(1, reference_stride))
-    r = np.repeat(refs, nb)
-    s = np.tile(np.arange(nb), len(refs))
-    ok = r != s
-    if max_distance is not None:
-        ok &= np.linalg.norm(b_points[s] - b_points[r], axis=1) <= max_distance
-    r, s = r[ok], s[ok]
-    key_b = _keys(_pair_features(b_points[r], b_normals[r], b_points[s], b_normals[s], dist_step, angle_step),
-                  angle_bins)
-    alpha_b = _alphas(fb, r, b_points[s])
-    lo = np.searchsorted(key_a, key_b, "left")
-    hi = np.searchsorted(key_a, key_b, "right")
-    found = hi - lo
+
+def vote_poses(model: PairTable, scene: PairTable, alpha_bins: int = 30, keep: int = 24,
+               bucket_cap: int = 32) -> list[tuple[np.ndarray, int]]:
+    """Poses carrying the scene's points onto the model's, from Drost's votes: up to `keep`
+    (the best cell of each scene reference, most votes first) with their vote counts."""
+    na, refs = model.n_points, scene.references
+    if na < 3 or scene.n_points < 3 or len(model.key) == 0 or len(scene.key) == 0:
+        return []
+    lo = np.searchsorted(model.key, scene.key, "left")
+    found = np.searchsorted(model.key, scene.key, "right") - lo
     # A feature shared by many pairs (a flat stretch) says little and would flood the votes:
     # each scene pair votes with at most `bucket_cap` of its model pairs, spread over the bucket.
     counts = np.minimum(found, bucket_cap)
     if counts.sum() == 0:
         return []
-    scene = np.repeat(np.arange(len(key_b)), counts)
+    pair = np.repeat(np.arange(len(scene.key)), counts)
     rank = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    model = lo[scene] + rank * found[scene] // counts[scene]
-    alpha = alpha_a[model] - alpha_b[scene]
+    match = lo[pair] + rank * found[pair] // counts[pair]
+    alpha = model.alpha[match].astype(np.float64) - scene.alpha[pair]
     abin = np.floor((alpha + np.pi) / (2 * np.pi) * alpha_bins).astype(np.int64) % alpha_bins
-    ref_index = np.searchsorted(refs, r[scene])
-    cell = (ref_index * na + ref_a[model]) * alpha_bins + abin
+    ref_index = np.searchsorted(refs, scene.ref[pair])
+    cell = (ref_index * na + model.ref[match]) * alpha_bins + abin
     votes = np.bincount(cell, minlength=len(refs) * na * alpha_bins).reshape(len(refs), na * alpha_bins)
 
-    # the best cell per reference point of b gives one pose
     best = votes.argmax(axis=1)
     best_votes = votes[np.arange(len(refs)), best]
     m_ref, m_alpha = best // alpha_bins, best % alpha_bins
@@ -145,11 +153,23 @@ def ppf_poses(a_points: np.ndarray, a_normals: np.ndarray, b_points: np.ndarray,
     c, sn = np.cos(angle), np.sin(angle)
     Rx = np.tile(np.eye(4), (len(refs), 1, 1))
     Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = c, -sn, sn, c
-    poses = np.linalg.inv(fa[m_ref]) @ Rx @ fb[refs]
-    order = np.argsort(-best_votes, kind="stable")
+    poses = np.linalg.inv(model.frames[m_ref]) @ Rx @ scene.frames[refs]
     out: list[tuple[np.ndarray, int]] = []
-    for k in order:
+    for k in np.argsort(-best_votes, kind="stable"):
         if best_votes[k] < 3 or len(out) >= keep:
             break
         out.append((poses[k], int(best_votes[k])))
     return out
+
+
+def ppf_poses(a_points: np.ndarray, a_normals: np.ndarray, b_points: np.ndarray, b_normals: np.ndarray,
+              dist_step: float, angle_step_deg: float = 12.0, alpha_bins: int = 30, reference_stride: int = 3,
+              max_distance: float | None = None, keep: int = 24,
+              bucket_cap: int = 32) -> list[tuple[np.ndarray, int]]:
+    """Poses carrying b onto a where b's surface (normals as given, i.e. already flipped for a
+    mating surface) lies on a's; up to `keep`, most votes first, with their vote counts."""
+    if len(a_points) < 3 or len(b_points) < 3:
+        return []
+    model = pair_table(a_points, a_normals, dist_step, angle_step_deg, 1, max_distance)
+    scene = pair_table(b_points, b_normals, dist_step, angle_step_deg, reference_stride, max_distance, sort=False)
+    return vote_poses(model, scene, alpha_bins, keep, bucket_cap)
