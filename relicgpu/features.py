@@ -9,17 +9,47 @@ fragments of the same object, sampled at the same step, give comparable numbers:
     f = (kappa * L, asinh(tau * L), chord_right / L, chord_left / L)
 
 (torsion is compressed by asinh: it explodes where the curve is locally straight).
-Feature points (Eq. 17) are the points whose k-cosine curvature tops every other
-in a window around them.
+
+Curvature, torsion and chords are taken on the contour smoothed by a circular Gaussian
+of sigma = stride / 4 points. A contour follows mesh edges, so at a few points' scale
+its shape is the triangulation's zigzag, which two mating fragments do not share: on
+synthetic breaks at 4000 faces the rank correlation of kappa between truly
+corresponding points of mating contours is 0.44 at stride 3 unsmoothed and 0.53 at
+stride 8 smoothed (torsion 0.33 -> 0.45, chords 0.1 -> 0.15), and the LCS of
+curvature alone gives a pose start near the truth on about twice as many pairs
+(scripts/bench_fusion.py). The k-cosine curvature stays on the unsmoothed points:
+feature points (Eq. 17) are the points whose k-cosine curvature tops every other in
+a window around them.
 """
 from __future__ import annotations
 
 import numpy as np
 
 
+def smooth_closed(points: np.ndarray, sigma: float) -> np.ndarray:
+    """A closed polyline smoothed by a circular Gaussian of `sigma` points (exact, via FFT)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    n = len(p)
+    if sigma <= 0 or n < 3:
+        return p.copy()
+    k = np.fft.rfftfreq(n) * n  # frequency index 0..n/2
+    transfer = np.exp(-2.0 * (np.pi * sigma * k / n) ** 2)
+    return np.fft.irfft(np.fft.rfft(p, axis=0) * transfer[:, None], n=n, axis=0)
+
+
+def smoothing_sigma(stride: int) -> float:
+    return stride / 4.0
+
+
 def contour_features(points: np.ndarray, step: float, k: int, stride: int, backend) -> tuple[np.ndarray, np.ndarray]:
-    """Return (raw (N,5) [kcos, kappa, tau, chord_right, chord_left], f (N,4) dimensionless)."""
-    raw = np.asarray(backend.contour_features(np.asarray(points, np.float64), k, stride), np.float64)
+    """Return (raw (N,5) [kcos, kappa, tau, chord_right, chord_left], f (N,4) dimensionless).
+
+    kcos from the contour as sampled, the other four from it smoothed (see the module note)."""
+    p = np.asarray(points, np.float64)
+    raw = np.asarray(backend.contour_features(p, k, stride), np.float64)
+    if smoothing_sigma(stride) > 0 and len(p) >= 3:
+        smooth = np.asarray(backend.contour_features(smooth_closed(p, smoothing_sigma(stride)), k, stride), np.float64)
+        raw = np.concatenate([raw[:, :1], smooth[:, 1:]], axis=1)
     return raw, dimensionless(raw, step * stride)
 
 

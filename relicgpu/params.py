@@ -31,7 +31,7 @@ class Params:
 
     # features (Eq. 13-28)
     kcos_k: int = 4                  # k of the k-cosine neighbourhood, in contour points
-    feature_stride: int = 3          # difference step for curvature, torsion and chords, in points
+    feature_stride: int = 8          # difference step for curvature, torsion and chords, in points (features.py)
     feature_peak_window: int = 5     # half-width of the window a curvature peak must top (Eq. 17)
 
     # fusion (Eq. 29-32)

@@ -54,9 +54,33 @@ def test_lcs_score_counts_true_correspondences(tiny_pairs):
     assert 0.0 <= s.share <= 1.0
 
 
+def test_lcs_check_is_the_lcs_step_of_match_pair(tiny_pairs):
+    pair, model = tiny_pairs[0], fusion_mod.hand_weighted_model()
+    check = ft.lcs_check(pair, model)
+    assert check.score == ft.lcs_score(pair, model, Params().lcs_eps)
+    assert check.start_ok == (check.start_error <= ft.START_WITHIN * pair.scale)
+    assert np.isfinite(check.start_error)
+    # the true pose itself has error 0, a pose 10% of the scale off has error 0.1 * scale
+    assert ft.pose_error(pair, pair.truth) < 1e-12
+    shifted = pair.truth.copy()
+    shifted[:3, 3] += [0.1 * pair.scale, 0, 0]
+    assert np.isclose(ft.pose_error(pair, shifted), 0.1 * pair.scale)
+    # a constant fusion flags every point pair, so its LCS is as long as can be
+    const = fusion_mod.hand_weighted_model(np.zeros(8))
+    assert ft.lcs_check(pair, const).score.total >= check.score.total
+
+
+def test_lcs_only_turns_the_other_start_sources_off():
+    p = ft.lcs_only(Params())
+    for name in ("max_patches", "descriptor_radius", "ppf_points"):
+        if hasattr(p, name):
+            assert getattr(p, name) == 0
+
+
 def test_shipped_weights_are_a_trained_mlp_with_their_record():
     model = fusion_mod.load_model(None)
     assert model.meta.get("made_by") == "relicgpu.fusion_train.train"
+    assert model.meta.get("feature_stride") == Params().feature_stride  # trained on the features prepare makes
     assert model.weights[0].shape[0] == 8 and model.weights[-1].shape[1] == 1
     out = fusion_mod.fuse(np.random.default_rng(0).normal(size=(50, 4)), model)
     assert out.shape == (50,) and np.all(np.isfinite(out))
