@@ -1052,20 +1052,26 @@ def flip_edges(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, rou
         cos = np.einsum("ij,ij->i", _unit(area), _unit(normals[t].sum(axis=1)))
         return np.where(np.einsum("ij,ij->i", area, area) > tiny ** 2, cos, -2.0)
 
+    changed = np.ones(len(f), bool)  # an edge's gain depends on its two faces only
     for _ in range(rounds):
         pairs = _edge_pairs(f)
         if pairs is None:
             return None, total
         a, b, c, d, f1, f2, keys, n = pairs
+        e = np.nonzero((changed[f1] | changed[f2]) & (c != d))[0]
+        a, b, c, d, f1, f2 = a[e], b[e], c[e], d[e], f1[e], f2[e]
         t1, t2 = np.stack([a, d, c], 1), np.stack([d, b, c], 1)
         old = np.minimum(agreement(np.stack([a, b, c], 1)), agreement(np.stack([b, a, d], 1)))
-        new = np.minimum(agreement(t1), agreement(t2))
+        gain = np.minimum(agreement(t1), agreement(t2)) - old
         new_key = np.minimum(c, d) * n + np.maximum(c, d)
-        cand = np.nonzero((new > old + FLIP_MARGIN) & (c != d))[0]
-        cand = cand[~np.isin(new_key[cand], keys)]
+        cand = np.nonzero(gain > FLIP_MARGIN)[0]
+        at = np.minimum(np.searchsorted(keys, new_key[cand]), len(keys) - 1)  # keys are sorted
+        cand = cand[keys[at] != new_key[cand]]
         if len(cand) == 0:
             break
-        cand = cand[np.argsort(old[cand] - new[cand], kind="stable")]  # largest gain first
+        changed[:] = False  # candidates that lose to a neighbour below are tried again next round
+        changed[f1[cand]] = changed[f2[cand]] = True
+        cand = cand[np.argsort(-gain[cand], kind="stable")]  # largest gain first
         rank = np.arange(len(cand))
         first = np.full(len(f), len(cand))
         np.minimum.at(first, np.concatenate([f1[cand], f2[cand]]), np.concatenate([rank, rank]))
@@ -1155,9 +1161,13 @@ def closed_manifold_fault(vertices: np.ndarray, faces: np.ndarray) -> str | None
     return None
 
 
-def load_point_cloud_fragment(path, name: str | None = None, *, max_points: int | None = MAX_POINTS,
+def load_point_cloud_fragment(path, name: str | None = None, *, max_points: int | None = MATCH_POINTS,
                               alpha_factor: float = ALPHA_FACTOR, progress: bool = False) -> Fragment:
-    """Read a point-cloud file and triangulate it into a checked Fragment (called by relicgpu.io.load_fragment)."""
+    """Read a point-cloud file and triangulate it into a checked Fragment (called by relicgpu.io.load_fragment).
+
+    The cloud is thinned to max_points (MATCH_POINTS: the density the matcher is tuned for);
+    `relicgpu mesh` makes a finer mesh to keep.
+    """
     p = Path(path)
     cloud = read_point_cloud(p)
     result = triangulate(cloud.points, max_points=max_points, alpha_factor=alpha_factor,
@@ -1182,6 +1192,8 @@ def cli_add_arguments(parser) -> None:
     parser.add_argument("--faces", type=int, default=0,
                         help="aim at about this many faces by thinning the cloud to half as many points first "
                              "(default: as many as --max-points gives)")
+    parser.add_argument("--no-refine", action="store_true",
+                        help="keep the raw alpha-shape surface (no edge flips or vertex smoothing)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -1207,7 +1219,7 @@ def cli_main(args) -> int:
     if args.faces:
         max_points = min(max_points or args.faces // 2, max(args.faces // 2, MIN_POINTS))
     result = triangulate(cloud.points, max_points=max_points, alpha_factor=args.alpha_factor,
-                         progress=not args.quiet, label=str(src))
+                         refine=not args.no_refine, progress=not args.quiet, label=str(src))
     vertices, faces = result.vertices, result.faces
     write_mesh(out, vertices, faces)
     for n in cloud.notes + result.notes:
