@@ -20,7 +20,10 @@ matchTemplate call alone.
     python scripts/bench_mosaic.py --example docs/mosaic_example.png
 
 Prints a table; the issue's bar is an offset within 1 px in >= 95% of pairs.
-The mosaic's defaults were tuned on seeds 1-4; seed 0 is held out.
+The mosaic's defaults were tuned on seeds 1-4; seeds 0 and 5 are held out.
+Measured (numpy backend, 2-core CPU; within 1 px, max axis; relicgpu / OpenCV):
+  noise 2-8: seed 0 91.7% / 93.3%, seed 5 90.0% / 90.0%
+  noise 1-4: seed 0 98.3% / 95.0%, seed 5 95.0% / 96.7%
 """
 from __future__ import annotations
 
@@ -114,7 +117,7 @@ def true_right_point(pair: dict, left_point) -> np.ndarray:
     return c + r_inv @ d
 
 
-def run(n_pairs: int, seed: int, backend_name: str, progress: bool = True, noise=(2.0, 8.0)) -> dict:
+def run(n_pairs: int, seed: int, backend_name: str, progress: bool = True, noise=(2.0, 8.0), params=None) -> dict:
     import cv2
     from tqdm import tqdm
 
@@ -125,7 +128,7 @@ def run(n_pairs: int, seed: int, backend_name: str, progress: bool = True, noise
     samples = load_samples()
     names = sorted(samples)
     rng = np.random.default_rng(seed)
-    params = mosaic.MosaicParams()
+    params = params or mosaic.MosaicParams()
     # warm up kernels (compilation is not matching time)
     warm = make_pair(samples[names[0]], np.random.default_rng(12345))
     try:
