@@ -394,3 +394,33 @@ def test_large_photographs_are_registered_shrunk_then_refined():
     assert "full_resolution" in pm.timings  # 1100 px > max_size: two scales
     truth = _truth(origin_left, origin_right, shape, angle, pm.left_point)
     assert np.abs(pm.right_point - truth).max() <= 1.0
+
+
+def test_vote_consistency_of_two_regions():
+    # centres 100 px apart vertically; tried angles up to 1.5 deg, so up to 2.5 deg (4.36 px) + 2 px is allowed
+    p = M.MosaicParams()
+    a = M.FeatureRegion((100, 300), 42, None, None, None)
+    b = M.FeatureRegion((200, 300), 42, None, None, None)
+    ma = M.EntropyMatch(90.0, 100.0, 0.0, 1.0, 1.0)
+
+    def at(row, col):
+        return M.EntropyMatch(row, col, 0.0, 1.0, 1.0)
+
+    assert M._consistent(a, ma, b, at(190.0, 100.0), p)        # the same translation
+    assert M._consistent(a, ma, b, at(190.0, 105.0), p)        # 2.9 deg turn of a 100 px vector: 5 px <= 6.36
+    assert not M._consistent(a, ma, b, at(190.0, 107.0), p)    # 7 px: more than the angles allow
+    assert not M._consistent(a, ma, b, at(150.0, 100.0), p)    # the distance between the regions changed
+
+
+def test_band_passed_correlation_ignores_a_smooth_gradient():
+    # a ramp correlates with itself shifted along it on the raw image, not once band-passed
+    yy, xx = np.mgrid[0:120, 0:120].astype(float)
+    rng = np.random.default_rng(3)
+    img = 2.0 * xx + rng.normal(0, 3.0, xx.shape)
+    p = M.MosaicParams()
+    prep = M.prepare_image(img, p)
+    region = M.FeatureRegion((60, 60), 30, None, None, None)
+    assert M.match_correlation(prep, prep, region, (60, 60), 0.0, p) > 0.9        # the same place
+    shifted = M.match_correlation(prep, prep, region, (30, 60), 0.0, p)            # 30 px along the ramp's isolines
+    raw = M.match_correlation(prep, prep, region, (30, 60), 0.0, M.MosaicParams(corr_bandpass=()))
+    assert raw > 0.8 and shifted < 0.3
