@@ -253,7 +253,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     if heads is None and params.ppf_points > 0:
         # point-pair-feature votes: finds contacts that cover only part of each fracture surface
         model, scene = _ppf_table(pa.sample, params, scale, "model"), _ppf_table(pb.sample, params, scale, "scene")
-        for pose, votes in vote_poses(model, scene, keep=params.ppf_starts):
+        for pose, votes in vote_poses(model, scene, 2 * params.ppf_distance_step * scale, keep=params.ppf_starts):
             starts.append(pose)
             origins.append(("ppf", -1, -1, np.zeros((0, 2), np.int64)))
     if heads is None:

@@ -99,6 +99,7 @@ class PairTable:
     alpha: np.ndarray  # (M,) angle of the other point about +x in the reference's frame
     n_points: int
     references: np.ndarray  # the points used as references
+    centroid: np.ndarray  # of the points
 
 
 def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_step_deg: float = 12.0,
@@ -120,13 +121,16 @@ def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_
     if sort:
         order = np.argsort(key, kind="stable")
         key, r, alpha = key[order], r[order], alpha[order]
-    return PairTable(frames, key, r.astype(np.int32), alpha.astype(np.float32), n, refs)
+    centroid = points.mean(axis=0) if n else np.zeros(3)
+    return PairTable(frames, key, r.astype(np.int32), alpha.astype(np.float32), n, refs, centroid)
 
 
-def vote_poses(model: PairTable, scene: PairTable, alpha_bins: int = 30, keep: int = 24,
-               bucket_cap: int = 32) -> list[tuple[np.ndarray, int]]:
-    """Poses carrying the scene's points onto the model's, from Drost's votes: up to `keep`
-    (the best cell of each scene reference, most votes first) with their vote counts."""
+def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alpha_bins: int = 30, keep: int = 24,
+               bucket_cap: int = 32, cluster_angle_deg: float = 12.0,
+               cells_per_reference: int = 1) -> list[tuple[np.ndarray, int]]:
+    """Poses carrying the scene's points onto the model's, from Drost's votes: the best cell of
+    each scene reference gives a pose; up to `keep` of them, most supported first, with their
+    support (the votes of all poses within cluster_distance / cluster_angle_deg of them)."""
     na, refs = model.n_points, scene.references
     if na < 3 or scene.n_points < 3 or len(model.key) == 0 or len(scene.key) == 0:
         return []
@@ -146,30 +150,53 @@ def vote_poses(model: PairTable, scene: PairTable, alpha_bins: int = 30, keep: i
     cell = (ref_index * na + model.ref[match]) * alpha_bins + abin
     votes = np.bincount(cell, minlength=len(refs) * na * alpha_bins).reshape(len(refs), na * alpha_bins)
 
-    best = votes.argmax(axis=1)
-    best_votes = votes[np.arange(len(refs)), best]
+    t = min(cells_per_reference, votes.shape[1])
+    best = np.argpartition(-votes, t - 1, axis=1)[:, :t]
+    best_votes = np.take_along_axis(votes, best, axis=1).ravel()
+    best = best.ravel()
     m_ref, m_alpha = best // alpha_bins, best % alpha_bins
+    refs = np.repeat(refs, t)
     angle = (m_alpha + 0.5) / alpha_bins * 2 * np.pi - np.pi
     c, sn = np.cos(angle), np.sin(angle)
     Rx = np.tile(np.eye(4), (len(refs), 1, 1))
     Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = c, -sn, sn, c
     poses = np.linalg.inv(model.frames[m_ref]) @ Rx @ scene.frames[refs]
+    # Every reference point inside the contact votes for the same pose, noise peaks scatter:
+    # score each pose by the votes of all poses like it (Drost's pose clustering), then keep
+    # the best-scored, skipping those like one already kept.
+    like = _similar(poses, scene.centroid, cluster_distance, cluster_angle_deg)
+    support = like.astype(np.float64) @ best_votes
     out: list[tuple[np.ndarray, int]] = []
-    for k in np.argsort(-best_votes, kind="stable"):
-        if best_votes[k] < 3 or len(out) >= keep:
+    taken = np.zeros(len(refs), bool)
+    for k in np.argsort(-support, kind="stable"):
+        if len(out) >= keep or support[k] < 3:
             break
-        out.append((poses[k], int(best_votes[k])))
+        if taken[k]:
+            continue
+        taken |= like[k]
+        out.append((poses[k], int(support[k])))
     return out
+
+
+def _similar(poses: np.ndarray, centre: np.ndarray, distance: float, angle_deg: float) -> np.ndarray:
+    """(N,N) bool: poses that turn by less than angle_deg relative to each other and put `centre`
+    within `distance` of each other."""
+    r = poses[:, :3, :3]
+    cos = (np.einsum("aij,bij->ab", r, r) - 1.0) / 2.0
+    c = np.einsum("nij,j->ni", r, centre) + poses[:, :3, 3]
+    gap = np.linalg.norm(c[:, None] - c[None], axis=2)
+    return (cos > np.cos(np.radians(angle_deg))) & (gap < distance)
 
 
 def ppf_poses(a_points: np.ndarray, a_normals: np.ndarray, b_points: np.ndarray, b_normals: np.ndarray,
               dist_step: float, angle_step_deg: float = 12.0, alpha_bins: int = 30, reference_stride: int = 3,
               max_distance: float | None = None, keep: int = 24,
-              bucket_cap: int = 32) -> list[tuple[np.ndarray, int]]:
+              bucket_cap: int = 32, cells_per_reference: int = 1) -> list[tuple[np.ndarray, int]]:
     """Poses carrying b onto a where b's surface (normals as given, i.e. already flipped for a
     mating surface) lies on a's; up to `keep`, most votes first, with their vote counts."""
     if len(a_points) < 3 or len(b_points) < 3:
         return []
     model = pair_table(a_points, a_normals, dist_step, angle_step_deg, 1, max_distance)
     scene = pair_table(b_points, b_normals, dist_step, angle_step_deg, reference_stride, max_distance, sort=False)
-    return vote_poses(model, scene, alpha_bins, keep, bucket_cap)
+    return vote_poses(model, scene, 2 * dist_step, alpha_bins, keep, bucket_cap,
+                      cells_per_reference=cells_per_reference)
