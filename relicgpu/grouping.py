@@ -5,13 +5,15 @@ fragments of the same object are put into one group, so that matching runs
 within groups. Two ways:
 
 - unsupervised, `group(fragments)`: per-fragment descriptors that survive
-  breakage (below), each with an uncertainty (the fragment's own spread of it,
-  floored); per pair of fragments and descriptor, how many standard errors apart
-  they are (z, capped); a fixed logistic model over those z (PAIR_WEIGHTS, fitted
-  once on synthetic heaps that are not the benchmark's, see `fit_pair_model`) gives
-  the odds that the two come from one object; average-linkage agglomerative
-  clustering on 1 - p, cut where the mean p between two clusters falls below 0.7,
-  so the number of groups is found, not given (or given, or another cut).
+  breakage (below); per pair of fragments and feature, how many within-object
+  spreads apart they are (z, capped; FEATURE_SCALES), plus whether the two have
+  a fracture patch of one size and outline (the two sides of one cut do); a
+  fixed logistic model over those (PAIR_WEIGHTS, fitted once on synthetic heaps
+  that are not the benchmark's, see `fit_pair_model`) gives the odds that the two
+  come from one object; average-linkage agglomerative clustering on 1 - p, cut
+  where the mean p between two clusters falls below 0.7, so the number of groups
+  is found, not given (or given, or another cut); fragments left alone or in
+  pairs are then clustered among themselves at a looser cut.
 - supervised, `relicgpu train-classifier LABELS.csv`: a small PointNet over
   surface points (position in the fragment's principal frame, normal, fracture
   flag) joined with the descriptors, trained with torch; `relicgpu group
@@ -25,13 +27,15 @@ keeps from its object whatever the cuts were:
     inward along the normals to the first surface hit), roughness (normal
     perturbation at triangle scale, from the segmentation);
   fracture surfaces: roughness (normal perturbation; RMS height about each
-    patch's plane), share of the area;
-  scan: the median edge length of the fracture surfaces and of the original
-    surface (fragments of one object are usually scanned and meshed together, so
-    they share a resolution; where every fragment has one resolution this carries
-    nothing, and `resolution=False` uses a model fitted without it);
+    patch's plane), share of the area, relief spectrum (RMS height about the
+    local plane within a radius, interpolated to radii fixed within the heap), and
+    the largest patches' areas and in-plane extents (for the pair match);
   colour: mean and spread of the vertex colours of the original surface, when
     every fragment's file has them.
+The scan resolution (edge length) is deliberately not used: a scanner digitises
+every fragment of a heap at one resolution, so it carries no object identity,
+and on synthetic heaps it only tells objects apart through artefacts of how the
+objects were meshed.
 """
 from __future__ import annotations
 
@@ -51,30 +55,46 @@ DESCRIPTOR_NAMES = (
     "orig_roughness", "frac_roughness", "frac_height", "frac_share",
 )
 THICKNESS_RAYS = 160
-# Floors of the uncertainty of each compared feature (thickness median, larger and smaller
-# curvature medians, original-surface roughness, fracture height, fracture share): a
-# fragment's own spread stands for the rest (see Descriptor.evidence).
-FEATURE_NAMES = ("log_thickness", "kmax", "kmin", "orig_roughness", "frac_height", "frac_share",
-                 "log_frac_edge", "log_orig_edge")
-# The scan resolution floors: 2x the within-object spread measured on synthetic heaps (0.02-0.06).
-FEATURE_FLOORS = (0.05, 0.2, 0.2, 0.25, 0.4, 0.15, 0.08, 0.08)
-RESOLUTION_FEATURES = 2  # the last two features: left out with resolution=False
-COLOUR_FLOOR = 0.02
-Z_CAP = 8.0  # standard errors: beyond this a feature says "different" no louder
-# Logistic model of "one object" over the capped z of FEATURE_NAMES, last the intercept;
-# class-balanced, L2 1e-2. Fitted by `scripts/bench_group.py --fit 10 11 ... 19` on heaps of
-# synthetic mixture seeds 10-19 (the benchmark scores seeds 0-4; same 8 shapes, other breaks,
-# scales and piece counts). Colour, when present, enters with the thickness weight (not fitted:
-# no coloured training heaps).
-# Two-fold check on those seeds (fitted on 5, ARI on the other 5, at LINK_CUT): mean 0.927, min
-# 0.737 (0.854, min 0.683, without the resolution features).
-PAIR_WEIGHTS = (-2.328, -0.549, 0.022, -0.525, -0.603, -0.571, -1.167, -0.197, 6.153)
-PAIR_WEIGHTS_NO_RESOLUTION = (-2.193, -0.939, 0.000, -1.207, -0.316, -1.403, 5.058)
-# Clusters merge while the mean probability of one object between them is above 1 - LINK_CUT.
-# Chosen on the same seeds 10-19, two-fold: cut 0.3/0.4/0.5/0.6 gave mean ARI 0.927/0.925/0.920/0.875
-# (min 0.74/0.59/0.58/0.46): whole objects merge sooner than they split.
-LINK_CUT = 0.3
+# The features compared between two fragments (Descriptor.features), all unit-free: lengths as
+# log(x / L), curvatures as asinh(k * L), L the heap's median fragment size. "relief_R" is the
+# fracture relief at radius R x L (spectrum_at).
+RELIEF_RADII = (0.02, 0.04, 0.08)
+FEATURE_NAMES = ("log_thickness_q25", "log_thickness_q50", "log_thickness_q75", "kmax_q25", "kmax_q50",
+                 "kmin_q50", "orig_roughness", "frac_roughness", "frac_height", "frac_share",
+                 *(f"relief_{r:g}" for r in RELIEF_RADII))
+# Per feature, how far apart two fragments of one object typically are: 1.4826 x the median
+# absolute deviation from their object's median, pooled over the objects of synthetic heaps
+# (`scripts/bench_group.py --fit 10 ... 29`). A pair's z is its difference over this. Objects that
+# are alike all over (a tube, a bowl) set these; pieces of a varied one (a torso's chest and
+# limbs) lie many scales apart, which the leftover stage of `cluster` is for.
+FEATURE_SCALES = (0.0350, 0.0069, 0.0031, 0.0217, 0.0103, 0.0845, 0.0520, 0.0386, 0.2434, 0.0744, 0.1611, 0.0734,
+                  0.0750)
+COLOUR_SCALE = 0.02
+Z_CAP = 8.0  # beyond this a feature says "different" no louder
+Z_MISSING = 1.0  # z of a feature one of the two could not measure
+# Fracture patches of two fragments "match" when area and both in-plane extents agree within
+# exp(m); the pair feature is max(0, log(PATCH_TOLERANCE / m)) for the best-matching patches.
+PATCH_TOLERANCE = 0.3
+# Logistic model of "one object" over the capped z of FEATURE_NAMES, then the patch match, last
+# the intercept; class-balanced, L2 1e-2, fitted by `scripts/bench_group.py --fit 10 ... 29` on
+# heaps of synthetic mixture seeds 10-29, scanned at one resolution (the benchmark scores seeds
+# 0-4). Colour, when present, enters as the mean z of its channels with the thickness-median
+# weight (not fitted: no coloured training heaps).
+PAIR_WEIGHTS = (-0.049, -0.314, -0.366, -0.260, -0.294, 0.142, -0.228, -0.006, -0.121, -0.163, 0.154, -0.382,
+                -0.029, 3.224, 10.020)
+# Clusters merge while the mean probability of one object between them is above 1 - LINK_CUT
+# (average linkage). Fragments left in groups of at most LEFTOVER_SIZE are then clustered among
+# themselves at LEFTOVER_CUT: pieces unlike the rest of their own object (a torso's limb and its
+# chest) find each other there rather than staying alone. Chosen on seeds 10-29, models fitted on
+# one half and scored on the other: mean ARI 0.934 (min 0.655) at 0.4 / 3 / 0.9; 0.924 at 0.3 / 3;
+# 0.914 at 0.4 / 2; 0.877 with no leftover stage (0.3).
+LINK_CUT = 0.4
+LEFTOVER_SIZE = 3
+LEFTOVER_CUT = 0.9
 CLASSIFIER_POINTS = 256
+SPECTRUM_RADII = tuple(2.0 ** np.arange(-7.0, -1.4, 0.5))  # x the fragment size: where the spectrum is measured
+SPECTRUM_SAMPLES = 120
+PATCHES = 8
 
 
 @dataclass(frozen=True)
@@ -90,9 +110,10 @@ class Descriptor:
     frac_share: float  # fracture area / total area
     size: float  # bounding-box diagonal
     colour: np.ndarray | None = None  # (6,) mean and std of RGB in [0, 1] on the original surface
-    frac_edge: float = float("nan")  # median edge length between fracture faces, length
-    orig_edge: float = float("nan")  # median edge length elsewhere, length
-    edge_se: tuple = (0.0, 0.0)  # standard errors of the log of those medians
+    frac_spectrum: np.ndarray | None = None  # (len(SPECTRUM_RADII),) RMS height of the fracture surface about
+    #   its local plane within each radius SPECTRUM_RADII x size, length; nan where unmeasured
+    patches: np.ndarray | None = None  # (P, 3) fracture patches, largest first: area, the two in-plane extents
+    orig_spectrum: np.ndarray | None = None  # as frac_spectrum, of the original surface: its bending with scale
 
     def vector(self, ref_length: float) -> np.ndarray:
         """Unit-free feature vector: curvatures as asinh(k * L), lengths as log(x / L)."""
@@ -105,22 +126,17 @@ class Descriptor:
             v.append(self.colour)
         return np.concatenate([np.asarray(x, np.float64).ravel() for x in v])
 
-    def evidence(self, ref_length: float) -> tuple[np.ndarray, np.ndarray]:
-        """(values, sigmas): the unit-free features compared between fragments and the
-        uncertainty of each, the fragment's own spread (interquartile range / 1.35) where it
-        has one, combined with a floor (FEATURE_FLOORS)."""
-        x = self.vector(ref_length)
-        iqr = lambda lo, hi: (x[hi] - x[lo]) / 1.35
+    def features(self, ref_length: float) -> np.ndarray:
+        """The unit-free features of FEATURE_NAMES (nan where unmeasured), then the mean colour
+        when the fragment has one."""
         L = float(ref_length)
-        edge = lambda e: np.log(max(e, 1e-6 * L) / L) if np.isfinite(e) else np.log(self.size / L)
-        values = [x[7], x[1], x[4], x[9], x[11], x[12], edge(self.frac_edge), edge(self.orig_edge)]
-        spread = [iqr(6, 8), iqr(0, 2), iqr(3, 5), 0.0, 0.0, 0.0, *self.edge_se]
-        floors = list(FEATURE_FLOORS)
+        x = self.vector(L)
+        relief = [spectrum_at(self, r * L) for r in RELIEF_RADII]
+        values = [*x[6:9], x[0], x[1], x[4], x[9], x[10], x[11], x[12],
+                  *(np.log(r / L) if np.isfinite(r) and r > 0 else np.nan for r in relief)]
         if self.colour is not None:
             values += list(self.colour[:3])
-            spread += list(self.colour[3:])
-            floors += [COLOUR_FLOOR] * 3
-        return np.array(values), np.hypot(np.array(spread), np.array(floors))
+        return np.array(values, np.float64)
 
 
 @dataclass(frozen=True)
@@ -185,30 +201,74 @@ def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None)
         c = np.asarray(colours, np.float64)[used, :3]
         c = c / 255.0 if c.max() > 1.0 else c
         colour = np.concatenate([c.mean(0), c.std(0)])
-    frac_edge, orig_edge, edge_se = _edge_lengths(v, seg.topology, frac)
+    spectrum = _fracture_spectrum(v, f, frac, areas, size)
+    orig_spectrum = _fracture_spectrum(v, f, orig, areas, size)
+    patches = _fracture_patches(v, f, seg.face_region, frac, areas)
     return Descriptor(fragment.name, kmax_q, kmin_q, thickness, orig_rough, frac_rough, frac_height,
                       float(areas[frac].sum() / total) if total > 0 else 0.0, size, colour,
-                      frac_edge, orig_edge, edge_se)
+                      spectrum, patches, orig_spectrum)
 
 
-def _edge_lengths(v, topology, frac, min_edges=10):
-    """Median length of the edges between two fracture faces and of the other edges (nan when
-    fewer than min_edges), the resolution the fragment was scanned and meshed at, and the
-    standard error of the log of each median (1.25 x spread / sqrt(n); 1 when unmeasured)."""
-    ev, ef = topology.edge_vertices, topology.edge_faces
-    length = np.maximum(np.linalg.norm(v[ev[:, 0]] - v[ev[:, 1]], axis=1), 1e-300)
-    on_frac = frac[ef[:, 0]] & frac[ef[:, 1]]
-    meds, ses = [], []
-    for m in (on_frac, ~on_frac):
-        if m.sum() < min_edges:
-            meds.append(float("nan"))
-            ses.append(1.0)
+def _fracture_spectrum(v, f, frac, areas, size, radii=None, samples=SPECTRUM_SAMPLES):
+    """Per radius r x size: the median over sampled points of the masked faces (`frac`) of the RMS
+    distance of those face centres within that radius from their best-fit plane. On a cut surface a
+    rough-surface spectrum (how the relief grows with the window, which a cut keeps wherever the
+    piece came from); on the original surface its bending at that scale (about r^2 x curvature)."""
+    from scipy.spatial import cKDTree
+
+    radii = SPECTRUM_RADII if radii is None else radii
+    out = np.full(len(radii), np.nan)
+    idx = np.flatnonzero(frac)
+    if len(idx) < 12:
+        return out
+    centres = v[f[idx]].mean(axis=1)
+    tree = cKDTree(centres)
+    rng = np.random.default_rng(len(f))
+    pick = rng.choice(len(idx), min(samples, len(idx)), replace=False, p=areas[idx] / areas[idx].sum())
+    for k, r in enumerate(radii):
+        hoods = [nb for nb in tree.query_ball_point(centres[pick], r * size) if len(nb) >= 6]
+        if len(hoods) < 5:
             continue
-        logs = np.log(length[m])
-        q25, q75 = np.quantile(logs, (0.25, 0.75))
-        meds.append(float(np.exp(np.median(logs))))
-        ses.append(float(1.25 * (q75 - q25) / 1.35 / np.sqrt(m.sum())))
-    return meds[0], meds[1], (ses[0], ses[1])
+        # covariance of each neighbourhood from its sums (shifted by the sample point for precision)
+        cov = np.empty((len(hoods), 3, 3))
+        for j, nb in enumerate(hoods):
+            c = centres[nb] - centres[nb[0]]
+            m = c.mean(0)
+            cov[j] = c.T @ c / len(c) - np.outer(m, m)
+        out[k] = float(np.median(np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, 0], 0.0))))
+    return out
+
+
+def spectrum_at(d: "Descriptor", radius: float, surface: str = "fracture") -> float:
+    """The relief of a fragment's fracture (or "original") surface at an absolute radius: its
+    spectrum interpolated in log-log (nan outside the radii it was measured at)."""
+    spectrum = d.frac_spectrum if surface == "fracture" else d.orig_spectrum
+    if spectrum is None:
+        return float("nan")
+    r = np.log(np.asarray(SPECTRUM_RADII) * d.size)
+    ok = np.isfinite(spectrum) & (spectrum > 0)
+    x = np.log(radius)
+    if ok.sum() < 2 or not r[ok][0] <= x <= r[ok][-1]:
+        return float("nan")
+    return float(np.exp(np.interp(x, r[ok], np.log(spectrum[ok]))))
+
+
+def _fracture_patches(v, f, face_region, frac, areas, top=PATCHES):
+    """(P, 3) the largest fracture patches: area and the spreads (2 sigma) of their faces along
+    the two in-plane principal axes; the other side of the same cut has about the same."""
+    rows = []
+    centres = v[f].mean(axis=1)
+    for r in np.unique(face_region[frac]):
+        m = face_region == r
+        if m.sum() < 6:
+            continue
+        w = areas[m]
+        c = centres[m]
+        mu = (c * w[:, None]).sum(0) / w.sum()
+        ev = np.linalg.eigvalsh(((c - mu) * w[:, None]).T @ (c - mu) / w.sum())
+        rows.append((float(w.sum()), 2 * np.sqrt(max(ev[2], 0.0)), 2 * np.sqrt(max(ev[1], 0.0))))
+    rows.sort(key=lambda t: -t[0])
+    return np.array(rows[:top], np.float64).reshape(-1, 3)
 
 
 def _vertex_normals(nv, f, fn, areas):
@@ -370,48 +430,79 @@ def silhouette(dist: np.ndarray, labels: np.ndarray) -> float:
     return float(s.mean())
 
 
-def pair_z(values: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
-    """(n, n, D) |x_i - x_j| / sqrt(s_i^2 + s_j^2) per feature, capped at Z_CAP: how many
-    standard errors apart two fragments are, each feature weighed by how well both measured it."""
-    z = np.abs(values[:, None] - values[None]) / np.sqrt(sigmas[:, None] ** 2 + sigmas[None] ** 2)
-    return np.minimum(z, Z_CAP)
+def pair_z(values: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """(n, n, D) |x_i - x_j| / scale per feature, capped at Z_CAP; Z_MISSING where either is nan."""
+    z = np.abs(values[:, None] - values[None]) / np.asarray(scales, np.float64)
+    return np.where(np.isnan(z), Z_MISSING, np.minimum(z, Z_CAP))
 
 
-def _model_columns(n_features: int, resolution: bool) -> list[int]:
-    geometric = len(FEATURE_NAMES) - RESOLUTION_FEATURES
-    cols = list(range(len(FEATURE_NAMES) if resolution else geometric))
-    return cols + list(range(len(FEATURE_NAMES), n_features))  # colour columns, when present
+def patch_match(descriptors: list[Descriptor]) -> np.ndarray:
+    """(n, n) max(0, log(PATCH_TOLERANCE / m)), m the smallest over patch pairs of the largest
+    |log ratio| of area and in-plane extents: > 0 where two fragments have a fracture patch of
+    one size and outline, as the two sides of one cut have."""
+    logs = [np.log(np.maximum(d.patches, 1e-300)) if d.patches is not None and len(d.patches) else None
+            for d in descriptors]
+    n = len(descriptors)
+    m = np.full((n, n), np.inf)
+    for i in range(n):
+        for j in range(i + 1, n):
+            if logs[i] is not None and logs[j] is not None:
+                m[i, j] = m[j, i] = np.abs(logs[i][:, None] - logs[j][None]).max(axis=2).min()
+    return np.log(np.maximum(PATCH_TOLERANCE / np.maximum(m, 1e-2), 1.0))
 
 
-def same_object_probability(values: np.ndarray, sigmas: np.ndarray, resolution: bool = True,
-                            weights: np.ndarray | None = None) -> np.ndarray:
-    """(n, n) probability (class-balanced odds) that two fragments come from one object."""
-    w = np.asarray(weights if weights is not None else (PAIR_WEIGHTS if resolution else PAIR_WEIGHTS_NO_RESOLUTION),
-                   np.float64)
-    z = pair_z(values, sigmas)
-    cols = _model_columns(values.shape[1], resolution)
-    n_geo = len(w) - 1
-    logit = z[:, :, cols[:n_geo]] @ w[:-1] + w[-1]
-    if len(cols) > n_geo:  # colour: the mean of its z, weighed as thickness
-        logit += w[0] * z[:, :, cols[n_geo:]].mean(axis=2)
+def pair_features(descriptors: list[Descriptor], scales=None) -> np.ndarray:
+    """(n, n, len(FEATURE_NAMES) + 1 [+ 1 with colour]) the pair model's inputs: capped z of each
+    feature, the patch match, and (when every fragment has colour) the mean z of the colour."""
+    L = float(np.median([d.size for d in descriptors]))
+    values = np.stack([d.features(L) for d in descriptors])
+    k = len(FEATURE_NAMES)
+    sc = np.asarray(FEATURE_SCALES if scales is None else scales, np.float64)
+    parts = [pair_z(values[:, :k], sc), patch_match(descriptors)[:, :, None]]
+    if values.shape[1] > k:
+        parts.append(pair_z(values[:, k:], np.full(values.shape[1] - k, COLOUR_SCALE)).mean(axis=2, keepdims=True))
+    return np.concatenate(parts, axis=2)
+
+
+def same_object_probability(features: np.ndarray, weights=None) -> np.ndarray:
+    """(n, n) probability (class-balanced odds) that two fragments come from one object, from
+    pair_features."""
+    w = np.asarray(PAIR_WEIGHTS if weights is None else weights, np.float64)
+    k = len(w) - 1
+    logit = features[:, :, :k] @ w[:-1] + w[-1]
+    if features.shape[2] > k:  # colour, weighed as the thickness median
+        logit += w[1] * features[:, :, k]
     p = 1.0 / (1.0 + np.exp(-np.clip(logit, -50, 50)))
     np.fill_diagonal(p, 1.0)
     return 0.5 * (p + p.T)
 
 
-def fit_pair_model(heaps, resolution: bool = True, l2: float = 1e-2, iterations: int = 50) -> np.ndarray:
-    """Class-balanced L2 logistic regression of "same object" over the pair z of FEATURE_NAMES.
+def fit_feature_scales(heaps) -> np.ndarray:
+    """FEATURE_SCALES from known mixtures [(descriptors, labels)]: per feature, 1.4826 x the
+    median absolute deviation of fragments from their object's median (floored at 1e-3)."""
+    res = []
+    for desc, labels in heaps:
+        L = float(np.median([d.size for d in desc]))
+        x = np.stack([d.features(L)[:len(FEATURE_NAMES)] for d in desc])
+        lab = np.asarray(labels)
+        for o in np.unique(lab):
+            m = lab == o
+            med = np.array([np.median(c[np.isfinite(c)]) if np.isfinite(c).any() else np.nan for c in x[m].T])
+            res.append(x[m] - med)
+    r = np.abs(np.vstack(res))
+    return np.array([1.4826 * np.median(c[np.isfinite(c)]) if np.isfinite(c).any() else 1.0 for c in r.T]) + 1e-3
+
+
+def fit_pair_model(heaps, scales=None, l2: float = 1e-2, iterations: int = 50) -> np.ndarray:
+    """Class-balanced L2 logistic regression of "same object" over pair_features (without colour).
 
     heaps: [(descriptors, labels)] of known mixtures. Returns the weights, intercept last."""
     xs, ys = [], []
     for desc, labels in heaps:
-        L = float(np.median([d.size for d in desc]))
-        values, sigmas = (np.stack(a) for a in zip(*(d.evidence(L) for d in desc)))
-        cols = _model_columns(len(FEATURE_NAMES), resolution)
-        z = pair_z(values[:, :len(FEATURE_NAMES)], sigmas[:, :len(FEATURE_NAMES)])[:, :, cols]
+        feats = pair_features(desc, scales)[:, :, :len(FEATURE_NAMES) + 1]
         lab = np.asarray(labels)
         iu = np.triu_indices(len(lab), 1)
-        xs.append(z[iu])
+        xs.append(feats[iu])
         ys.append(lab[iu[0]] == lab[iu[1]])
     x = np.hstack([np.vstack(xs), np.ones((sum(len(a) for a in xs), 1))])
     y = np.concatenate(ys).astype(np.float64)
@@ -426,22 +517,36 @@ def fit_pair_model(heaps, resolution: bool = True, l2: float = 1e-2, iterations:
     return w
 
 
-def cluster(dist: np.ndarray, n_groups: int | None = None, distance: float = LINK_CUT) -> tuple[np.ndarray, float]:
+def cluster(dist: np.ndarray, n_groups: int | None = None, distance: float = LINK_CUT,
+            leftover_size: int = LEFTOVER_SIZE, leftover_cut: float = LEFTOVER_CUT) -> tuple[np.ndarray, float]:
     """Average-linkage clustering of a distance matrix (here 1 - p of one object), cut at
-    `distance` or into `n_groups`: labels (0 = largest group) and their silhouette."""
-    from scipy.cluster.hierarchy import fcluster, linkage
-    from scipy.spatial.distance import squareform
-
+    `distance` (then the leftovers: fragments in groups of at most leftover_size, clustered among
+    themselves at leftover_cut) or into `n_groups`: labels (0 = largest group) and their silhouette."""
     n = len(dist)
     if n == 1:
         return np.zeros(1, np.int64), float("nan")
+    if n_groups is not None:
+        labels = _average_linkage(dist, n_groups=min(int(n_groups), n))
+    else:
+        labels = _average_linkage(dist, distance=float(distance))
+        _, inverse, sizes = np.unique(labels, return_inverse=True, return_counts=True)
+        left = np.flatnonzero(sizes[inverse] <= leftover_size)
+        if len(left) > 1 and leftover_cut > distance:
+            labels[left] = labels.max() + 1 + _average_linkage(dist[np.ix_(left, left)], distance=leftover_cut)
+    labels = _relabel_by_size(labels)
+    return labels, silhouette(dist, labels)
+
+
+def _average_linkage(dist, distance=None, n_groups=None):
+    from scipy.cluster.hierarchy import fcluster, linkage
+    from scipy.spatial.distance import squareform
+
+    if len(dist) == 1:
+        return np.zeros(1, np.int64)
     tree = linkage(squareform(dist, checks=False), method="average")
     if n_groups is not None:
-        labels = fcluster(tree, min(int(n_groups), n), criterion="maxclust")
-    else:
-        labels = fcluster(tree, float(distance), criterion="distance")
-    labels = _relabel_by_size(np.asarray(labels))
-    return labels, silhouette(dist, labels)
+        return np.asarray(fcluster(tree, n_groups, criterion="maxclust"), np.int64)
+    return np.asarray(fcluster(tree, distance, criterion="distance"), np.int64)
 
 
 def _relabel_by_size(labels):
@@ -452,25 +557,23 @@ def _relabel_by_size(labels):
 
 
 def group_fragments(fragments: list[Fragment], n_groups: int | None = None, distance: float | None = None,
-                    resolution: bool = True, params=None, progress: bool = False) -> Grouping:
+                    params=None, progress: bool = False) -> Grouping:
     """Unsupervised grouping of a heap (see the module docstring)."""
     if not fragments:
         raise FragmentError("no fragments to group")
     t0 = time.perf_counter()
     desc = describe_all(fragments, params, progress)
     t1 = time.perf_counter()
-    p = heap_probability(desc, resolution)
+    p = heap_probability(desc)
     labels, sil = cluster(1.0 - p, n_groups, LINK_CUT if distance is None else distance)
     t2 = time.perf_counter()
     return Grouping([fr.name for fr in fragments], labels, sil, {}, "average",
                     {"describe": t1 - t0, "cluster": t2 - t1})
 
 
-def heap_probability(descriptors: list[Descriptor], resolution: bool = True) -> np.ndarray:
+def heap_probability(descriptors: list[Descriptor]) -> np.ndarray:
     """(n, n) probability of one object for every pair of a heap's fragments."""
-    L = float(np.median([d.size for d in descriptors]))
-    values, sigmas = (np.stack(a) for a in zip(*(d.evidence(L) for d in descriptors)))
-    return same_object_probability(values, sigmas, resolution)
+    return same_object_probability(pair_features(descriptors))
 
 
 def group(fragments, n_groups: int | None = None, **kw) -> list[list[str]]:
@@ -781,9 +884,6 @@ def cli_add_arguments(parser, name="group") -> None:
     parser.add_argument("--distance", type=float, default=None,
                         help=f"cut the tree where the mean probability of one object between two clusters "
                              f"falls below 1 - DISTANCE (default: {LINK_CUT})")
-    parser.add_argument("--no-resolution", action="store_true",
-                        help="ignore the scan resolution (edge lengths): for heaps scanned at one resolution "
-                             "whatever the object")
     parser.add_argument("--classifier", default=None, metavar="WEIGHTS",
                         help="classify with weights from `relicgpu train-classifier` instead of clustering")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
@@ -830,7 +930,7 @@ def cli_main(args, name="group") -> int:
     else:
         if args.distance is not None and not 0.0 < args.distance < 1.0:
             raise CliError(f"--distance must lie between 0 and 1, got {args.distance}")
-        g = group_fragments(fragments, args.groups, args.distance, not args.no_resolution, progress=not args.quiet)
+        g = group_fragments(fragments, args.groups, args.distance, progress=not args.quiet)
         doc = g.to_dict()
     atomic_write_json(Path(args.out) / "groups.json", doc)
     sizes = [len(x) for x in doc["groups"]]

@@ -20,6 +20,7 @@ one half of those seeds, the ARI on the other half.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -34,47 +35,86 @@ from relicgpu.io import Fragment  # noqa: E402
 
 SHAPES = ("vase", "torso", "slab", "tube", "ring", "brick", "capsule", "bowl")
 N_OBJECTS = (3, 5, 8, 4, 6, 7, 3, 8)  # per mixture seed, cycled
+# One scanner resolution for the whole heap: edge length in units of a scale-1 object's diagonal
+# (every object is meshed at EDGE / its scale in its own units). The smallest object (scale 0.5,
+# 10 pieces) then has about 500 faces a piece, the largest (scale 2, 4 pieces) about 20000.
+EDGE = 0.016
 
 
-def shape_source(shape: str, cache: Path) -> str:
-    """A built-in synth shape, or the path of a closed solid written into cache/shapes."""
+# Per shape, the bounding-box diagonal of the solid written below, in its own units: synth
+# normalises it to 1, so a tessellation edge of e object units is e * RAW_DIAGONAL here.
+RAW_DIAGONAL = {"tube": 1.9896, "ring": 2.2344, "brick": 1.1576, "capsule": 1.6359, "bowl": 1.5362}
+
+
+def shape_source(shape: str, cache: Path, spacing: float) -> str:
+    """A built-in synth shape, or the path of a closed solid written into cache/shapes,
+    tessellated at about `spacing` object units (synth only refines a file's edges that are
+    longer than 1.3 x its spacing: a finer file would keep its own, finer, resolution)."""
     if shape in synth.SHAPES:
         return shape
-    path = cache / "shapes" / f"{shape}.stl"
-    if path.exists():
-        return str(path)
+    e = spacing * RAW_DIAGONAL[shape]  # in the units of the file
+    n = lambda length: max(8, int(math.ceil(length / e)))
     import manifold3d as mf
     import trimesh
 
     if shape == "tube":
-        mesh = trimesh.creation.annulus(r_min=0.42, r_max=0.5, height=1.4, sections=96)
+        key, make = n(2 * math.pi * 0.46), lambda k: trimesh.creation.annulus(r_min=0.42, r_max=0.5, height=1.4,
+                                                                              sections=k)
     elif shape == "ring":
-        mesh = trimesh.creation.torus(major_radius=0.6, minor_radius=0.18, major_sections=96, minor_sections=32)
+        key = (n(2 * math.pi * 0.6), n(2 * math.pi * 0.18))
+        make = lambda k: trimesh.creation.torus(major_radius=0.6, minor_radius=0.18, major_sections=k[0],
+                                                minor_sections=k[1])
     elif shape == "brick":
-        mesh = trimesh.creation.box((1.0, 0.5, 0.3))
+        key, make = 0, lambda k: trimesh.creation.box((1.0, 0.5, 0.3))
     elif shape == "capsule":
-        mesh = trimesh.creation.capsule(height=0.8, radius=0.3, count=[48, 48])
+        key = n(2 * math.pi * 0.3)
+        make = lambda k: trimesh.creation.capsule(height=0.8, radius=0.3, count=[k, max(4, k // 2)])
     elif shape == "bowl":
-        shell = mf.Manifold.sphere(0.5, 96) - mf.Manifold.sphere(0.45, 96)
-        shell = shell - mf.Manifold.cube((2, 2, 2), True).translate((0, 0, 1.1))
-        m = shell.to_mesh()
-        mesh = trimesh.Trimesh(np.asarray(m.vert_properties)[:, :3], np.asarray(m.tri_verts))
+        def make(k):
+            shell = mf.Manifold.sphere(0.5, k) - mf.Manifold.sphere(0.45, k)
+            shell = shell - mf.Manifold.cube((2, 2, 2), True).translate((0, 0, 1.1))
+            m = shell.to_mesh()
+            return trimesh.Trimesh(np.asarray(m.vert_properties)[:, :3], np.asarray(m.tri_verts))
+        key = n(2 * math.pi * 0.5)
     else:
         raise ValueError(shape)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    mesh.export(path)
+    path = cache / "shapes" / f"{shape}_{'x'.join(map(str, np.atleast_1d(key)))}.stl"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        make(key).export(path)
     return str(path)
 
 
-def broken(shape, scale, pieces, seed, faces, cache: Path | None):
-    """The fragments of one object, scaled; cached as npz (synth is the slow part)."""
-    path = None if cache is None else cache / f"{shape}_{seed}_{pieces}_{faces}.npz"
+def synth_faces(shape: str, pieces: int, spacing: float) -> int:
+    """The `faces` argument that makes synth.generate sample the object at `spacing` object units
+    (synth.generate's own rule for its sampling density, inverted)."""
+    if shape in synth.SHAPES:
+        area, frac_area, c_orig, c_frac = synth._AREA_GUESS[shape]
+    else:
+        _, frac_area, c_orig, c_frac = synth._AREA_GUESS_FILE
+        area = NORMALISED_AREA[shape]
+    return int(round((c_orig * area + c_frac * frac_area * (pieces - 1) ** 0.75) / (pieces * spacing ** 2)))
+
+
+# Surface area of the file shapes after synth's normalisation (diagonal 1), measured.
+NORMALISED_AREA = {"tube": 2.160, "ring": 0.852, "brick": 1.418, "capsule": 0.983, "bowl": 1.520}
+
+
+def broken(shape, scale, pieces, seed, edge, cache: Path | None):
+    """The fragments of one object scaled by `scale` and sampled at `edge` absolute units (one
+    scanner resolution for every object: edge / scale in the object's own units); cached as npz."""
+    spacing = edge / scale
+    faces = synth_faces(shape, pieces, spacing)
+    if faces < 200:
+        raise ValueError(f"{shape} x{scale:.2f} in {pieces} pieces at edge {edge}: {faces} faces a piece, "
+                         f"synth needs 200; use a smaller --edge")
+    src = shape_source(shape, cache or Path("/tmp/relicgpu_bench_honest"), spacing)
+    path = None if cache is None else cache / f"{Path(src).stem}_{seed}_{pieces}_{faces}.npz"
     if path is not None and path.exists():
         d = np.load(path)
         frs = [Fragment(f"frag_{i:02d}", d[f"v{i}"], d[f"f{i}"]) for i in range(int(d["n"]))]
     else:
-        frs = synth.generate(shape_source(shape, cache), pieces=pieces, seed=seed, faces=faces,
-                             progress=False).fragments
+        frs = synth.generate(src, pieces=pieces, seed=seed, faces=faces, progress=False).fragments
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
             np.savez(path, n=len(frs), **{f"v{i}": f.vertices for i, f in enumerate(frs)},
@@ -83,7 +123,7 @@ def broken(shape, scale, pieces, seed, faces, cache: Path | None):
     return [Fragment(f"{shape}{scale:.2f}_{seed}_{f.name}", f.transformed(S).vertices, f.faces) for f in frs]
 
 
-def mixture(seed, faces, cache):
+def mixture(seed, edge, cache):
     rng = np.random.default_rng(seed)
     n = N_OBJECTS[seed % len(N_OBJECTS)]
     shapes = [SHAPES[i] for i in rng.choice(len(SHAPES), n, replace=False)]
@@ -91,11 +131,29 @@ def mixture(seed, faces, cache):
     for k, shape in enumerate(shapes):
         scale = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0))))
         pieces = int(rng.integers(4, 11))
-        frs = broken(shape, scale, pieces, 100 * seed + k, faces, cache)
+        frs = broken(shape, scale, pieces, 100 * seed + k, edge, cache)
         frags += frs
         labels += [shape] * len(frs)
     order = rng.permutation(len(frags))  # a heap has no order
     return [frags[i] for i in order], [labels[i] for i in order]
+
+
+def object_edges(frags, labels):
+    """Per object of a heap: (median edge length on fracture faces, on the other faces), the
+    faces told apart by relicgpu.segment as the grouping sees them."""
+    from relicgpu.backends import resolve
+    from relicgpu.params import Params
+    from relicgpu.segment import segment
+
+    per = {}
+    for fr, lab in zip(frags, labels):
+        v, f = fr.vertices, fr.faces.astype(np.int64)
+        frac = segment(v, f, Params(), fr.size, resolve("numpy")).fracture_faces
+        e = np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2)  # (F, 3) the edges of each face
+        a, b = per.setdefault(lab, ([], []))
+        a.append(e[frac].ravel())
+        b.append(e[~frac].ravel())
+    return [(float(np.median(np.concatenate(a))), float(np.median(np.concatenate(b)))) for a, b in per.values()]
 
 
 def _score(assemblies, fragments, objects, true_poses, touching):
@@ -146,26 +204,36 @@ def bench_assembly(faces: int) -> None:
         print(f"{name:<34} {t:>7.1f} {sc.part_accuracy:>8.3f} {sc.pair_precision:>9.3f} {sc.pair_recall:>8.3f}")
 
 
-def fit(seeds, faces, cache) -> None:
-    """Fit the pair models (with and without scan resolution) on these mixture seeds and print them."""
+def fit(seeds, edge, cache) -> None:
+    """Fit grouping.FEATURE_SCALES and PAIR_WEIGHTS on these mixture seeds and print them, with a
+    two-fold check: fitted on one half of the seeds, the ARI of group_fragments' clustering on the other."""
     heaps = []
     for s in seeds:
-        frags, labels = mixture(s, faces, cache)
-        heaps.append((G.describe_all(frags), labels, frags))
+        frags, labels = mixture(s, edge, cache)
+        heaps.append((G.describe_all(frags, progress=True), labels))
+        print(f"described seed {s}: {len(frags)} fragments", file=sys.stderr)
+
+    def fitted(hs):
+        scales = G.fit_feature_scales(hs)
+        return scales, G.fit_pair_model(hs, scales)
+
+    def ari(d, labels, scales, weights):
+        p = G.same_object_probability(G.pair_features(d, scales), weights)
+        return G.adjusted_rand_index(labels, G.cluster(1 - p)[0])
+
+    scales, w = fitted(heaps)
     half = len(heaps) // 2
-    for resolution, name in ((True, "PAIR_WEIGHTS"), (False, "PAIR_WEIGHTS_NO_RESOLUTION")):
-        w = G.fit_pair_model([(d, l) for d, l, _ in heaps], resolution)
-        cross = []
-        if half >= 1:
-            for train, test in ((heaps[:half], heaps[half:]), (heaps[half:], heaps[:half])):
-                wt = G.fit_pair_model([(d, l) for d, l, _ in train], resolution)
-                for d, l, _ in test:
-                    L = float(np.median([x.size for x in d]))
-                    v, sg = (np.stack(a) for a in zip(*(x.evidence(L) for x in d)))
-                    p = G.same_object_probability(v, sg, resolution, weights=wt)
-                    cross.append(G.adjusted_rand_index(l, G.cluster(1 - p)[0]))  # at G.LINK_CUT
-        print(f"{name} = ({', '.join(f'{x:.3f}' for x in w)})  # {', '.join(G.FEATURE_NAMES[:len(w) - 1])}, "
-              f"intercept; two-fold ARI over seeds {list(seeds)}: mean {np.mean(cross):.3f}, min {np.min(cross):.3f}")
+    cross = []
+    for train, test in ((heaps[:half], heaps[half:]), (heaps[half:], heaps[:half])):
+        if train and test:
+            sc, wt = fitted(train)
+            cross += [ari(d, l, sc, wt) for d, l in test]
+    print(f"FEATURE_SCALES = ({', '.join(f'{x:.4f}' for x in scales)})")
+    print(f"PAIR_WEIGHTS = ({', '.join(f'{x:.3f}' for x in w)})  # {', '.join(G.FEATURE_NAMES)}, patch_match, "
+          f"intercept")
+    if cross:
+        print(f"two-fold ARI over seeds {list(seeds)}: mean {np.mean(cross):.3f}, min {np.min(cross):.3f} "
+              f"({', '.join(f'{a:.3f}' for a in cross)})")
 
 
 def main(argv=None) -> int:
@@ -173,12 +241,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--train-seeds", type=int, nargs="+", default=[1000, 1001, 1002, 1003, 1004])
     ap.add_argument("--train-pieces", type=int, default=7)
-    ap.add_argument("--faces", type=int, default=600, help="faces per fragment (default: 600)")
+    ap.add_argument("--edge", type=float, default=EDGE,
+                    help=f"scan resolution, one for every object: edge length in units of a scale-1 object's "
+                         f"diagonal (default: {EDGE})")
     ap.add_argument("--epochs", type=int, default=100)
-    ap.add_argument("--cache", default="/tmp/relicgpu_bench_group", help="synth cache ('' for none)")
+    ap.add_argument("--cache", default="/tmp/relicgpu_bench_honest", help="synth cache ('' for none)")
     ap.add_argument("--no-supervised", action="store_true")
-    ap.add_argument("--no-resolution", action="store_true",
-                    help="unsupervised grouping without the scan-resolution features")
     ap.add_argument("--fit", type=int, nargs="+", default=None, metavar="SEED",
                     help="fit the pair model on these mixture seeds, print it, and stop")
     ap.add_argument("--assembly", action="store_true",
@@ -187,25 +255,33 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     cache = Path(args.cache) if args.cache else None
     if args.fit:
-        fit(args.fit, args.faces, cache)
+        fit(args.fit, args.edge, cache)
         return 0
 
     rows = []
     mixtures = []
+    edges = []
     for s in args.seeds:
         t0 = time.perf_counter()
-        frags, labels = mixture(s, args.faces, cache)
+        frags, labels = mixture(s, args.edge, cache)
         t1 = time.perf_counter()
-        g = G.group_fragments(frags, resolution=not args.no_resolution)
+        g = G.group_fragments(frags)
         t2 = time.perf_counter()
         ari = G.adjusted_rand_index(labels, g.labels)
         mixtures.append((frags, labels))
+        edges += object_edges(frags, labels)
         rows.append((s, len(set(labels)), len(frags), int(g.labels.max()) + 1, ari, t1 - t0, t2 - t1))
         print(f"seed {s}: {len(set(labels))} objects, {len(frags)} fragments -> {int(g.labels.max()) + 1} groups, "
               f"ARI {ari:.3f} ({t2 - t1:.1f} s)", file=sys.stderr)
 
-    print(f"\nUnsupervised grouping (pair model on descriptor z{'' if args.no_resolution else ' with scan resolution'}"
-          f", average linkage cut at p = {1 - G.LINK_CUT:.2g})")
+    print(f"\nScan resolution: median edge length per object / --edge, on its fracture and original faces "
+          f"(relicgpu.segment), over the objects of all mixtures")
+    print(f"{'surface':>8} {'min':>6} {'q25':>6} {'median':>6} {'q75':>6} {'max':>6}")
+    for name, col in (("fracture", 0), ("original", 1)):
+        x = np.array([e[col] for e in edges]) / args.edge
+        print(f"{name:>8} " + " ".join(f"{q:>6.3f}" for q in np.nanquantile(x, [0, 0.25, 0.5, 0.75, 1.0])))
+    print(f"\nUnsupervised grouping (pair model on feature z and fracture-patch match, average linkage cut at "
+          f"p = {1 - G.LINK_CUT:.2g}, leftovers at p = {1 - G.LEFTOVER_CUT:.2g})")
     print(f"{'seed':>4} {'objects':>7} {'frags':>5} {'groups':>6} {'ARI':>6} {'synth s':>7} {'group s':>7}")
     for s, no, nf, ng, ari, ts, tg in rows:
         print(f"{s:>4} {no:>7} {nf:>5} {ng:>6} {ari:>6.3f} {ts:>7.1f} {tg:>7.1f}")
@@ -222,7 +298,7 @@ def main(argv=None) -> int:
         rng = np.random.default_rng(ts)
         for k, shape in enumerate(SHAPES):
             scale = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0))))
-            frs = broken(shape, scale, args.train_pieces, ts * 10 + k, args.faces, cache)
+            frs = broken(shape, scale, args.train_pieces, ts * 10 + k, args.edge, cache)
             train_f += frs
             train_l += [shape] * len(frs)
     t1 = time.perf_counter()

@@ -16,13 +16,24 @@ def _scaled(frags, s, prefix):
     return [Fragment(prefix + f.name, f.transformed(S).vertices, f.faces) for f in frags]
 
 
+EDGE = 0.03  # one scan resolution for the whole heap, absolute units
+
+
+def _faces_at(shape, pieces, spacing):
+    """synth.generate's `faces` for sampling `shape` at `spacing` object units (its own rule inverted)."""
+    area, frac_area, c_orig, c_frac = synth._AREA_GUESS[shape]
+    return int(round((c_orig * area + c_frac * frac_area * (pieces - 1) ** 0.75) / (pieces * spacing ** 2)))
+
+
 @pytest.fixture(scope="module")
 def mixture():
-    """Three objects of different shapes and sizes, 4 small pieces each."""
+    """Three objects of different shapes and sizes, 4 pieces each, scanned at one resolution
+    (EDGE absolute: each object meshed at EDGE / its scale in its own units)."""
     parts = [("vase", 0.6, 4, 11), ("slab", 1.5, 4, 12), ("torso", 1.0, 4, 13)]
     frags, labels = [], []
     for k, (shape, scale, pieces, seed) in enumerate(parts):
-        r = synth.generate(shape, pieces=pieces, seed=seed, faces=300, progress=False)
+        r = synth.generate(shape, pieces=pieces, seed=seed, faces=_faces_at(shape, pieces, EDGE / scale),
+                           progress=False)
         frags += _scaled(r.fragments, scale, f"o{k}_")
         labels += [k] * pieces
     order = np.random.default_rng(0).permutation(len(frags))
@@ -79,40 +90,81 @@ def _pure_and_few(labels, pred, extra=2):
 
 
 def test_group_finds_the_objects(mixture):
-    # At 300 faces a piece the model (fitted at 600) splits a stray vase and torso piece off:
-    # ARI 0.744 with the scan resolution, 1.0 without; groups stay pure either way.
     frags, labels = mixture
     g = G.group_fragments(frags)
     _pure_and_few(labels, g.labels)
-    assert G.adjusted_rand_index(labels, g.labels) >= 0.7
-    assert G.adjusted_rand_index(labels, G.group_fragments(frags, resolution=False).labels) >= 0.9
+    assert G.adjusted_rand_index(labels, g.labels) >= 0.9
     groups = G.group(frags)
     assert sorted(n for grp in groups for n in grp) == sorted(f.name for f in frags)
 
 
+def _descriptor(thickness, rng, patches=None):
+    th = thickness * np.exp(rng.normal(0, 0.01, 3))
+    return G.Descriptor("x", np.full(3, 1.0), np.full(3, 0.5), np.sort(th), 1.0, 5.0, 0.01, 0.2,
+                        1.0 * np.exp(rng.normal(0, 0.01)), None, None, patches)
+
+
 def test_pair_model_fit_recovers_a_separating_rule():
-    """fit_pair_model on heaps whose objects differ only in thickness learns a negative
-    thickness weight and splits a new heap by it."""
+    """fit_feature_scales + fit_pair_model on heaps whose objects differ only in thickness learn
+    negative thickness weights and split a new heap by them."""
     rng = np.random.default_rng(0)
 
     def heap(n_obj, per):
         desc, labels = [], []
         for k in range(n_obj):
-            t = 0.02 * 2.0 ** k
             for _ in range(per):
-                th = t * np.exp(rng.normal(0, 0.01, 3))
-                desc.append(G.Descriptor("x", np.full(3, 1.0), np.full(3, 0.5), np.sort(th), 1.0, 5.0, 0.01,
-                                         0.2, 1.0 * np.exp(rng.normal(0, 0.01)), None, 0.01, 0.01))
+                desc.append(_descriptor(0.02 * 2.0 ** k, rng))
                 labels.append(k)
         return desc, labels
 
-    w = G.fit_pair_model([heap(4, 5), heap(3, 6)])
-    assert w[0] < -0.5 and w[-1] > 0
+    heaps = [heap(4, 5), heap(3, 6)]
+    scales = G.fit_feature_scales(heaps)
+    assert scales.shape == (len(G.FEATURE_NAMES),)
+    assert scales[1] == pytest.approx(0.01, rel=0.5)  # the log-thickness jitter of one object
+    w = G.fit_pair_model(heaps, scales)
+    assert w[1] + w[2] < -0.5 and w[-1] > 0
     d, labels = heap(3, 5)
-    L = float(np.median([x.size for x in d]))
-    v, s = (np.stack(a) for a in zip(*(x.evidence(L) for x in d)))
-    p = G.same_object_probability(v, s, weights=w)
+    p = G.same_object_probability(G.pair_features(d, scales), w)
     assert G.adjusted_rand_index(labels, G.cluster(1 - p)[0]) == pytest.approx(1.0)
+
+
+def test_cluster_gathers_the_leftovers():
+    """Two tight groups, and three fragments each too unlike any other to join at LINK_CUT but
+    alike enough for LEFTOVER_CUT: they end in one group, not three."""
+    d = np.full((10, 10), 0.99)
+    d[:4, :4] = 0.05
+    d[4:7, 4:7] = 0.05
+    d[7:, 7:] = 0.6
+    np.fill_diagonal(d, 0.0)
+    labels, _ = G.cluster(d)
+    assert len(set(labels[:4])) == 1 and len(set(labels[4:7])) == 1 and len(set(labels[7:])) == 1
+    assert len(set(labels)) == 3
+    alone, _ = G.cluster(d, leftover_cut=G.LINK_CUT)  # no second stage
+    assert len(set(alone)) == 5
+
+
+def test_fracture_relief_scales_with_the_fragment():
+    """The relief spectrum is a length: a fragment scaled by 2 has twice the relief at twice the radius."""
+    r = synth.generate("slab", pieces=2, seed=4, faces=1500, progress=False)
+    frag = r.fragments[0]
+    d1 = G.describe(frag)
+    d2 = G.describe(_scaled([frag], 2.0, "big_")[0])
+    radius = 0.1 * d1.size
+    assert np.isfinite(G.spectrum_at(d1, radius))
+    assert G.spectrum_at(d2, 2 * radius) == pytest.approx(2 * G.spectrum_at(d1, radius), rel=1e-6)
+    assert np.isnan(G.spectrum_at(d1, 10 * d1.size))  # beyond what was measured
+
+
+def test_patch_match_finds_the_other_side_of_a_cut():
+    rng = np.random.default_rng(3)
+    cut = np.array([[0.05, 0.3, 0.2]])
+    other = np.array([[0.02, 0.25, 0.1], [0.01, 0.1, 0.1]])
+    a = _descriptor(0.02, rng, np.vstack([cut * 1.02, other]))
+    b = _descriptor(0.02, rng, np.vstack([other * 3, cut]))
+    c = _descriptor(0.02, rng, other * 5)
+    m = G.patch_match([a, b, c])
+    assert m[0, 1] == m[1, 0] == pytest.approx(np.log(G.PATCH_TOLERANCE / np.log(1.02)), rel=1e-6)
+    assert m[0, 2] == 0.0 and m[1, 2] == 0.0
 
 
 def test_group_one_object_stays_one_group():
@@ -133,7 +185,7 @@ def test_group_cli(tmp_path, mixture):
     truth = {f.name: l for f, l in zip(frags, labels)}
     got = {e["file"]: e["group"] for e in doc["fragments"]}
     _pure_and_few([truth[n] for n in got], list(got.values()))
-    assert main(["group", str(src), "-o", str(tmp_path / "out2"), "--no-resolution", "--quiet"]) == 0
+    assert main(["group", str(src), "-o", str(tmp_path / "out2"), "--groups", "3", "--quiet"]) == 0
     doc = json.loads((tmp_path / "out2" / "groups.json").read_text())
     got = {e["file"]: e["group"] for e in doc["fragments"]}
     assert G.adjusted_rand_index([truth[n] for n in got], list(got.values())) >= 0.9
