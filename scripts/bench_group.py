@@ -9,13 +9,22 @@ objects. Supervised: the PointNet classifier, classes = the eight shapes, traine
 objects broken with other synth seeds (and other scales), accuracy on every fragment of
 the mixtures.
 
-    python scripts/bench_group.py                 # full grid: 5 mixture seeds
-    python scripts/bench_group.py --seeds 0 1 --train-seeds 1000
-    python scripts/bench_group.py --fit 10 11 12 13 14 15 16 17 18 19   # refit grouping.PAIR_WEIGHTS
+Every heap is "scanned at one resolution", as a real one is: every object is meshed at the
+same absolute edge length (--edge; synth gets the `faces` that give spacing edge / scale in
+the object's own units, and the file shapes are tessellated at that spacing), so the edge
+length carries no object identity. The table's first part shows how far the achieved median
+edge lengths still spread over the objects: thin walls narrower than a few edges (small
+vases, bowls, tubes) force shorter edges on their fracture strips, and the shapes' own
+tessellations differ a little on the original surface.
 
-The pair model of the unsupervised grouping (grouping.PAIR_WEIGHTS) was fitted with `--fit` on
-mixture seeds 10-19, never on the scored seeds; `--fit` also prints a cross-check: fitted on
-one half of those seeds, the ARI on the other half.
+    python scripts/bench_group.py                 # full grid: 5 mixture seeds
+    python scripts/bench_group.py --seeds 0 1 --train-seeds 1000 --no-supervised
+    python scripts/bench_group.py --fit 10 11 ... 29   # refit grouping.FEATURE_SCALES and PAIR_WEIGHTS
+
+The pair model of the unsupervised grouping (grouping.FEATURE_SCALES, PAIR_WEIGHTS) was fitted
+with `--fit` on mixture seeds 10-29, and its cut (LINK_CUT, LEFTOVER_*) chosen on them, never on
+the scored seeds 0-4; `--fit` also prints a cross-check: fitted on one half of those seeds, the
+ARI on the other half.
 """
 from __future__ import annotations
 
