@@ -113,7 +113,6 @@ class Descriptor:
     frac_spectrum: np.ndarray | None = None  # (len(SPECTRUM_RADII),) RMS height of the fracture surface about
     #   its local plane within each radius SPECTRUM_RADII x size, length; nan where unmeasured
     patches: np.ndarray | None = None  # (P, 3) fracture patches, largest first: area, the two in-plane extents
-    orig_spectrum: np.ndarray | None = None  # as frac_spectrum, of the original surface: its bending with scale
 
     def vector(self, ref_length: float) -> np.ndarray:
         """Unit-free feature vector: curvatures as asinh(k * L), lengths as log(x / L)."""
@@ -202,18 +201,16 @@ def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None)
         c = c / 255.0 if c.max() > 1.0 else c
         colour = np.concatenate([c.mean(0), c.std(0)])
     spectrum = _fracture_spectrum(v, f, frac, areas, size)
-    orig_spectrum = _fracture_spectrum(v, f, orig, areas, size)
     patches = _fracture_patches(v, f, seg.face_region, frac, areas)
     return Descriptor(fragment.name, kmax_q, kmin_q, thickness, orig_rough, frac_rough, frac_height,
                       float(areas[frac].sum() / total) if total > 0 else 0.0, size, colour,
-                      spectrum, patches, orig_spectrum)
+                      spectrum, patches)
 
 
 def _fracture_spectrum(v, f, frac, areas, size, radii=None, samples=SPECTRUM_SAMPLES):
     """Per radius r x size: the median over sampled points of the masked faces (`frac`) of the RMS
-    distance of those face centres within that radius from their best-fit plane. On a cut surface a
-    rough-surface spectrum (how the relief grows with the window, which a cut keeps wherever the
-    piece came from); on the original surface its bending at that scale (about r^2 x curvature)."""
+    distance of those face centres within that radius from their best-fit plane: a rough-surface
+    spectrum (how the relief grows with the window, which a cut keeps wherever the piece came from)."""
     from scipy.spatial import cKDTree
 
     radii = SPECTRUM_RADII if radii is None else radii
@@ -239,10 +236,10 @@ def _fracture_spectrum(v, f, frac, areas, size, radii=None, samples=SPECTRUM_SAM
     return out
 
 
-def spectrum_at(d: "Descriptor", radius: float, surface: str = "fracture") -> float:
-    """The relief of a fragment's fracture (or "original") surface at an absolute radius: its
-    spectrum interpolated in log-log (nan outside the radii it was measured at)."""
-    spectrum = d.frac_spectrum if surface == "fracture" else d.orig_spectrum
+def spectrum_at(d: "Descriptor", radius: float) -> float:
+    """The relief of a fragment's fracture surface at an absolute radius: its spectrum
+    interpolated in log-log (nan outside the radii it was measured at)."""
+    spectrum = d.frac_spectrum
     if spectrum is None:
         return float("nan")
     r = np.log(np.asarray(SPECTRUM_RADII) * d.size)
