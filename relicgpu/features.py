@@ -16,8 +16,8 @@ its shape is the triangulation's zigzag, which two mating fragments do not share
 synthetic breaks at 4000 faces the rank correlation of kappa between truly
 corresponding points of mating contours is 0.44 at stride 3 unsmoothed and 0.53 at
 stride 8 smoothed (torsion 0.33 -> 0.45, chords 0.1 -> 0.15), and the LCS of
-curvature alone gives a pose start near the truth on about twice as many pairs
-(scripts/bench_fusion.py). The k-cosine curvature stays on the unsmoothed points:
+standardised curvature alone gives a RANSAC start within 5% of the true pose on 19 of
+39 training pairs instead of 7 (relicgpu.fusion_train.lcs_check). The k-cosine curvature stays on the unsmoothed points:
 feature points (Eq. 17) are the points whose k-cosine curvature tops every other in
 a window around them.
 """

@@ -17,7 +17,8 @@ against prepare with Params(fusion_weights=...)), so only the fusion differs. Pe
   vertices) of its true place -- cheap, and what the fusion changes;
 - pairs ok: full match_pair (every start source) accepted with b's vertices within 1% of the
   object size (RMS) of their true place; median pose error (RMS, object units) of its transform;
-- with --lcs-only-full also match_pair from the LCS starts alone (other sources off).
+- with --lcs-only-full also match_pair from the LCS starts alone (other sources off), which
+  isolates the fusion's effect on the splicing; --skip-full leaves the full match_pair out.
 
 Last, per baseline: on how many pairs the MLP succeeds where the baseline fails and back.
 Work is spread over --workers processes (at most 2 on the shared machine), one object each.
@@ -62,8 +63,8 @@ def bench_specs(count: int, seed: int) -> list[ft.ObjectSpec]:
 _STATE: dict = {}
 
 
-def _init(models, paths, full_lcs_only, cache_dir):
-    _STATE.update(models=models, paths=paths, full_lcs_only=full_lcs_only, cache_dir=cache_dir)
+def _init(models, paths, full, full_lcs_only, cache_dir):
+    _STATE.update(models=models, paths=paths, full=full, full_lcs_only=full_lcs_only, cache_dir=cache_dir)
 
 
 def evaluate_object(spec: ft.ObjectSpec) -> list[dict]:
@@ -75,9 +76,11 @@ def evaluate_object(spec: ft.ObjectSpec) -> list[dict]:
         for name, model in models.items():
             params = Params(fusion_weights=str(paths[name]))
             check = ft.lcs_check(pair, model, params)
-            ok, err, match = ft.pair_result(pair, model, params)
             r = {"lcs_true": check.score.true, "lcs_total": check.score.total, "start_ok": check.start_ok,
-                 "start_err": check.start_error, "ok": ok, "err": err, "reason": match.reason}
+                 "start_err": check.start_error}
+            if _STATE["full"]:
+                r["ok"], r["err"], match = ft.pair_result(pair, model, params)
+                r["reason"] = match.reason
             if _STATE["full_lcs_only"]:
                 r["ok_lcs"], r["err_lcs"], _ = ft.pair_result(pair, model, ft.lcs_only(params))
             row[name] = r
@@ -103,9 +106,10 @@ def summarise(rows: list[dict], names) -> dict:
             "lcs_true_share": sum(x["lcs_true"] for x in r) / max(1, sum(x["lcs_total"] for x in r)),
             "lcs_correspondences": int(sum(x["lcs_total"] for x in r)),
             "lcs_starts_ok": float(np.mean([x["start_ok"] for x in r])),
-            "pair_success": float(np.mean([x["ok"] for x in r])),
-            "median_pose_error": float(np.median([x["err"] for x in r])),
         }
+        if "ok" in r[0]:
+            t["pair_success"] = float(np.mean([x["ok"] for x in r]))
+            t["median_pose_error"] = float(np.median([x["err"] for x in r]))
         if "ok_lcs" in r[0]:
             t["lcs_only_pair_success"] = float(np.mean([x["ok_lcs"] for x in r]))
             t["lcs_only_median_pose_error"] = float(np.median([x["err_lcs"] for x in r]))
@@ -120,6 +124,7 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", default=None, help="trained weights (default: the shipped ones)")
     ap.add_argument("--workers", type=int, default=2, help="processes (the shared machine has 2 cores)")
     ap.add_argument("--lcs-only-full", action="store_true", help="also run match_pair from the LCS starts alone")
+    ap.add_argument("--skip-full", action="store_true", help="no match_pair with every start source")
     ap.add_argument("--out", default="bench-results/fusion.json")
     ap.add_argument("--cache-dir", default=None, help="prepared pairs cache (default: temp dir)")
     args = ap.parse_args(argv)
@@ -144,7 +149,7 @@ def main(argv=None) -> int:
     check_swap(specs[0], models, paths, args.cache_dir)
     rows, used = [], 0
     bar = tqdm(total=args.pairs, desc="bench-fusion", file=sys.stderr)
-    init = (models, paths, args.lcs_only_full, args.cache_dir)
+    init = (models, paths, not args.skip_full, args.lcs_only_full, args.cache_dir)
     with mp.get_context("fork").Pool(min(args.workers, 2), _init, init) if args.workers > 1 else _Serial(init) as pool:
         for obj_rows in pool.imap(evaluate_object, specs, chunksize=1):  # in seed order
             used += 1
@@ -161,26 +166,27 @@ def main(argv=None) -> int:
     table = summarise(rows, names)
     print(f"{len(rows)} held-out pairs from {used} objects (seeds {args.seed}..{args.seed + used - 1}, shapes "
           f"{', '.join(ft.SHAPES)}, 2-6 pieces, noise 0-0.001), {args.workers} workers, {elapsed:.0f} s")
-    cols = [("LCS true share", "lcs_true_share", ".4f"), ("LCS starts ok", "lcs_starts_ok", ".3f"),
-            ("pairs ok", "pair_success", ".3f"), ("median err", "median_pose_error", ".2e")]
+    cols = [("LCS true share", "lcs_true_share", ".4f"), ("LCS starts ok", "lcs_starts_ok", ".3f")]
+    if not args.skip_full:
+        cols += [("pairs ok", "pair_success", ".3f"), ("median err", "median_pose_error", ".2e")]
     if args.lcs_only_full:
         cols += [("LCS-only ok", "lcs_only_pair_success", ".3f"), ("LCS-only err", "lcs_only_median_pose_error", ".2e")]
     print(f"{'fusion':<12}" + "".join(f" {c[0]:>14}" for c in cols))
     for name, t in table.items():
         print(f"{name:<12}" + "".join(f" {format(t[key], fmt):>14}" for _, key, fmt in cols))
     versus = {}
+    kinds = [("start_ok", "LCS starts ok")] + [("ok", "pairs ok")] * (not args.skip_full) \
+        + [("ok_lcs", "LCS-only pairs ok")] * args.lcs_only_full
     for base in names[:-1]:
-        gain = sum(r["trained MLP"]["ok"] and not r[base]["ok"] for r in rows)
-        loss = sum(r[base]["ok"] and not r["trained MLP"]["ok"] for r in rows)
-        sgain = sum(r["trained MLP"]["start_ok"] and not r[base]["start_ok"] for r in rows)
-        sloss = sum(r[base]["start_ok"] and not r["trained MLP"]["start_ok"] for r in rows)
-        versus[base] = {"pairs_ok_only_mlp": gain, "pairs_ok_only_baseline": loss,
-                        "starts_ok_only_mlp": sgain, "starts_ok_only_baseline": sloss}
-        print(f"trained MLP vs {base}: pairs ok only with the MLP {gain}, only with {base} {loss}; "
-              f"LCS starts ok only with the MLP {sgain}, only with {base} {sloss}")
+        versus[base] = {}
+        for key, label in kinds:
+            gain = sum(bool(r["trained MLP"][key] and not r[base][key]) for r in rows)
+            loss = sum(bool(r[base][key] and not r["trained MLP"][key]) for r in rows)
+            versus[base][key] = {"only_mlp": gain, "only_baseline": loss}
+            print(f"trained MLP vs {base}, {label}: only with the MLP {gain}, only with {base} {loss}")
     doc = {"pairs": len(rows), "objects": used, "seed": args.seed, "seconds": round(elapsed, 1),
            "workers": args.workers, "lcs_eps": Params().lcs_eps, "feature_stride": Params().feature_stride,
-           "start_within": ft.START_WITHIN, "curvature_mix": CURVATURE, "hand_mix": HAND_MIX, "weights": args.weights or "shipped",
+           "start_within": ft.START_WITHIN, "params": Params().to_dict(), "curvature_mix": CURVATURE, "hand_mix": HAND_MIX, "weights": args.weights or "shipped",
            "weights_meta": trained.meta, "table": table, "versus": versus, "per_pair": rows}
     atomic_write_json(Path(args.out), json.loads(json.dumps(doc, default=_plain)))
     print(f"wrote {args.out}")
