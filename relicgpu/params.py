@@ -17,9 +17,7 @@ class Params:
 
     # segmentation (Alg. 2)
     roughness_rings: int = 3         # neighbourhood (edge steps) for the normal perturbation of a face
-    roughness_threshold_deg: float = 3.0  # faces rougher than this (and than the noise floor) are fracture
-    roughness_noise_factor: float = 1.8   # ... times the roughness of the smoothest part of the surface
-    smooth_quantile: float = 0.2          # the smoothest part: this share of the area
+    roughness_threshold_deg: float = 3.0  # fracture is rougher than this (and than Otsu's split of the roughness)
     crease_angle_deg: float = 50.0   # region growing stops at edges whose normals differ more
     vote_rings: int = 2              # fracture/original by a vote of the faces this many edge-steps around
     min_region_faces: int = 12       # smaller regions are merged into their neighbour ...

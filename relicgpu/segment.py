@@ -95,14 +95,21 @@ def face_roughness(normals: np.ndarray, areas: np.ndarray, edge_faces: np.ndarra
 
 
 def roughness_threshold(rough: np.ndarray, areas: np.ndarray, params: Params) -> float:
-    """Fracture above this roughness: a multiple of the roughness of the smoothest fifth of the
-    surface (what scanner noise alone gives on this fragment), never below the fixed floor."""
-    order = np.argsort(rough)
-    cum = np.cumsum(areas[order])
-    if len(rough) == 0 or cum[-1] <= 0:
+    """Fracture above this roughness: Otsu's split of the area-weighted log roughness (the
+    smooth original surface and the rough fracture form two modes), never below the fixed floor.
+
+    A fixed share of the smoothest surface as the noise floor failed on pieces that are mostly
+    fracture (inner pieces of a 10-piece break: 50-86%), where that share is fracture too."""
+    if len(rough) < 2 or areas.sum() <= 0:
         return params.roughness_threshold_deg
-    noise_floor = float(rough[order][np.searchsorted(cum, params.smooth_quantile * cum[-1])])
-    return max(params.roughness_threshold_deg, params.roughness_noise_factor * noise_floor)
+    x = np.log(np.maximum(rough, 1e-3))
+    order = np.argsort(x)
+    x, w = x[order], areas[order]
+    w0 = np.cumsum(w)[:-1]
+    s0 = np.cumsum(w * x)[:-1]
+    w1 = w.sum() - w0
+    between = w0 * w1 * (s0 / np.maximum(w0, 1e-300) - ((w * x).sum() - s0) / np.maximum(w1, 1e-300)) ** 2
+    return max(params.roughness_threshold_deg, float(np.exp(x[np.argmax(between)])))
 
 
 def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: float, backend) -> Segmentation:
