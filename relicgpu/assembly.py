@@ -662,13 +662,15 @@ def _bar(total: int, show: bool, desc: str):
 
 def assemble(fragments_or_dir, params: Params | None = None, backend="auto", engine="local", workers=None,
              cache_dir=None, progress=True, out_dir=None, address: str | None = None,
-             top_k: int = TOP_K, gpus_per_task: float | None = None) -> "Assembly":
+             top_k: int = TOP_K, gpus_per_task: float | None = None, objects=None) -> "Assembly":
     """Match and assemble a directory (or list) of fragments.
 
     Returns an Assembly; with out_dir, also writes assembly.json, assembly.glb and the
     merged STL(s) there, and caches finished work in out_dir/cache (or cache_dir).
     engine: "local" or "ray" (address: a Ray cluster to join, else a local one starts;
     gpus_per_task: GPUs a Ray task takes where there are GPUs, default 1).
+    objects: optional class per fragment (relicgpu.grouping's labels): only pairs within one
+    class are matched, in one run over the whole heap (one engine, all pairs in parallel).
     """
     from .backends import resolve
     from .engines import Job, make_engine
@@ -718,6 +720,11 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
             result = screen(prepared, params, be)
             scores = result.scores
             cache.put_array("screen", scores, *hashes)
+        if objects is not None:
+            objects = np.asarray(objects)
+            if objects.shape != (n,):
+                raise ValueError(f"objects: one class per fragment expected, got {objects.shape} for {n}")
+            scores = np.where(objects[:, None] == objects[None, :], scores, 0.0)
         candidates = select_candidates(scores, top_k)
         timings["screen"] = time.perf_counter() - t0
         stats["candidates"] = len(candidates)
