@@ -67,8 +67,8 @@ FEATURE_NAMES = ("log_thickness_q25", "log_thickness_q50", "log_thickness_q75", 
 # (`scripts/bench_group.py --fit 10 ... 29`). A pair's z is its difference over this. Objects that
 # are alike all over (a tube, a bowl) set these; pieces of a varied one (a torso's chest and
 # limbs) lie many scales apart, which the leftover stage of `cluster` is for.
-FEATURE_SCALES = (0.0347, 0.0069, 0.0031, 0.0178, 0.0108, 0.0717, 0.0511, 0.0379, 0.2214, 0.0723, 0.1611, 0.0733,
-                  0.0762)
+FEATURE_SCALES = (0.0372, 0.0066, 0.0031, 0.0176, 0.0089, 0.0853, 0.0518, 0.0381, 0.2396, 0.0739, 0.1616, 0.0758,
+                  0.0763)
 COLOUR_SCALE = 0.02
 Z_CAP = 8.0  # beyond this a feature says "different" no louder
 Z_MISSING = 1.0  # z of a feature one of the two could not measure
@@ -81,9 +81,9 @@ PATCH_TOLERANCE = 0.3
 # 0-4). Colour, when present, enters as the mean z of its channels with the thickness-median
 # weight (not fitted: no coloured training heaps). Both depend on relicgpu.segment (which faces
 # are fracture): refit them when it changes. With the segmentation of commit 6b6777c, two-fold on
-# seeds 10-29: mean ARI 0.921, min 0.686.
-PAIR_WEIGHTS = (-0.036, -0.338, -0.335, -0.267, -0.247, 0.099, -0.359, -0.198, -0.173, -0.365, 0.197, -0.224,
-                0.010, 3.729, 10.807)
+# seeds 10-29: mean ARI 0.920, min 0.716.
+PAIR_WEIGHTS = (0.001, -0.361, -0.393, -0.243, -0.288, 0.094, -0.359, -0.254, -0.195, -0.332, 0.194, -0.238,
+                0.018, 3.872, 11.450)
 # Clusters merge while the mean probability of one object between them is above 1 - LINK_CUT
 # (average linkage). Fragments left in groups of at most LEFTOVER_SIZE are then clustered among
 # themselves at LEFTOVER_CUT: pieces unlike the rest of their own object (a torso's limb and its
