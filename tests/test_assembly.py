@@ -25,8 +25,8 @@ from relicgpu.params import Params
 from relicgpu.verify import SurfaceSample, vertex_normals
 
 SMALL = dict(shape="vase", pieces=4, seed=0, faces=1200)
-# Matching still misses many partial contacts between pieces of coarse meshes (see
-# scripts/bench_assembly.py); the end-to-end CI case is one the pipeline assembles whole.
+# Small enough for the CLI and resume tests; many-piece objects are in the mixed-directory test
+# below and in scripts/bench_assembly.py.
 END_TO_END = dict(shape="vase", pieces=3, seed=1, faces=4000, noise=0.0005)
 CLI = [sys.executable, "-c", "import sys; from relicgpu.cli import main; sys.exit(main())"]
 
@@ -72,7 +72,7 @@ def truth_samples(result, n_points=1500):
             sv = np.sort(rng.choice(sv, 2 * n_points, replace=False))
         known = {"fracture": frag.vertices[fv], "fracture_region": np.zeros(len(fv), np.int64),
                  "fracture_normals": vn[fv], "surface": frag.vertices[sv], "normals": vn[sv]}
-        out.append(SurfaceSample(**{f.name: known[f.name] for f in dataclasses.fields(SurfaceSample)}))
+        out.append(SurfaceSample(**{f.name: known[f.name] for f in dataclasses.fields(SurfaceSample) if f.name in known}))
     return out
 
 
@@ -249,6 +249,15 @@ def test_part_accuracy_counts_a_moved_fragment_wrong(broken):
 
 # --- end to end on a synthetic object ------------------------------------------------------
 
+def test_objects_restrict_matching_to_pairs_within_one_class(broken):
+    labels = [0, 0, 1, 1]
+    result = assemble(broken.fragments, backend="numpy", progress=False, objects=labels)
+    assert result.candidates and all(labels[i] == labels[j] for i, j in result.candidates)
+    assert all(labels[m.a] == labels[m.b] for m in result.matches)
+    with pytest.raises(ValueError, match="one class per fragment"):
+        assemble(broken.fragments, backend="numpy", progress=False, objects=[0, 1])
+
+
 def test_assemble_small_synthetic_object(local_result, synth_dir):
     result, frags = local_result
     s = score_assembly(result, frags, synth.read_truth(synth_dir))
@@ -261,8 +270,8 @@ def test_assemble_small_synthetic_object(local_result, synth_dir):
 
 
 def test_mixed_directory_of_two_objects_gives_two_groups(tmp_path):
-    a = synth.generate(shape="vase", pieces=3, seed=1, faces=4000, noise=0.0005, progress=False)
-    b = synth.generate(shape="torso", pieces=3, seed=0, faces=4000, noise=0.0005, progress=False)
+    a = synth.generate(shape="vase", pieces=5, seed=2, faces=4000, noise=0.0005, progress=False)
+    b = synth.generate(shape="torso", pieces=5, seed=0, faces=4000, noise=0.0005, progress=False)
     synth.write_many([a, b], tmp_path)
     frags = load_directory(tmp_path / "fragments")
     result = assemble(frags, backend="numpy", progress=False)
