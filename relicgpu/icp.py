@@ -171,7 +171,7 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
     share = np.zeros(h)
     prev = np.full(h, np.inf)
     for _ in range(iterations):
-        moved = np.einsum("hij,nj->hni", poses[:, :3, :3], source) + poses[:, None, :3, 3]
+        moved = np.matmul(source, np.swapaxes(poses[:, :3, :3], 1, 2)) + poses[:, None, :3, 3]
         idx, dist = backend.nearest_neighbors(moved.reshape(-1, 3), target)
         idx = np.asarray(idx, np.int64).reshape(h, n)
         dist = np.asarray(dist, np.float64).reshape(h, n)
@@ -180,9 +180,10 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
         share = (dist < floor).mean(axis=1)
         wsum = np.maximum(w.sum(axis=1), 1e-12)
         matched = target[idx]
-        cs = np.einsum("hn,hni->hi", w, moved) / wsum[:, None]
-        ct = np.einsum("hn,hni->hi", w, matched) / wsum[:, None]
-        hmat = np.einsum("hn,hni,hnj->hij", w, moved - cs[:, None], matched - ct[:, None])
+        cs = np.matmul(w[:, None, :], moved)[:, 0] / wsum[:, None]
+        ct = np.matmul(w[:, None, :], matched)[:, 0] / wsum[:, None]
+        # (BLAS matmuls: a three-operand einsum here cost more than the nearest-neighbour step on a GPU)
+        hmat = np.matmul(np.swapaxes((moved - cs[:, None]) * w[..., None], 1, 2), matched - ct[:, None])
         u, _, vt = np.linalg.svd(hmat)
         v = np.swapaxes(vt, 1, 2)
         d = np.sign(np.linalg.det(v @ np.swapaxes(u, 1, 2)))

@@ -151,7 +151,7 @@ def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alph
     votes = np.bincount(cell, minlength=len(refs) * na * alpha_bins).reshape(len(refs), na * alpha_bins)
 
     t = min(cells_per_reference, votes.shape[1])
-    best = np.argpartition(-votes, t - 1, axis=1)[:, :t]
+    best = votes.argmax(axis=1)[:, None] if t == 1 else np.argpartition(-votes, t - 1, axis=1)[:, :t]
     best_votes = np.take_along_axis(votes, best, axis=1).ravel()
     best = best.ravel()
     m_ref, m_alpha = best // alpha_bins, best % alpha_bins
