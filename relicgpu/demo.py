@@ -62,7 +62,7 @@ def cli_add_arguments(parser) -> None:
     parser.add_argument("--workspace", default=DEFAULT_WORKSPACE,
                         help=f"where the demo case is written and served from (default ./{DEFAULT_WORKSPACE})")
     parser.add_argument("--shape", default="vase", choices=SHAPES, help="the synthetic object (default vase)")
-    parser.add_argument("--pieces", type=int, default=4, help="number of fragments (default 4)")
+    parser.add_argument("--pieces", type=int, default=6, help="number of fragments (default 6)")
     parser.add_argument("--seed", type=int, default=1, help="random seed of the breakage (default 1)")
     parser.add_argument("--fresh", action="store_true", help="break the object again even if its fragments exist")
     parser.add_argument("--no-browser", action="store_true", help="only print the viewer's address")
