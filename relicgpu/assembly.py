@@ -42,6 +42,10 @@ CACHE_VERSION = 1
 # Screening: each fragment keeps its TOP_K best partners by screening score; a pair
 # is matched in full when it is among the top k of either fragment (see docs/design.md).
 TOP_K = 8
+# The point-pair screen: fracture points per fragment (votes cost ~6 ms a pair at 250), and
+# the weight of the contour LCS score beside it (it only breaks ties: alone it ranks at chance).
+SCREEN_PPF_POINTS = 250
+SCREEN_LCS_WEIGHT = 1e-3
 # Two placements of a fragment agree when its fracture points move less than this RMS
 # (a fraction of the working scale).
 LOOP_TOLERANCE = 0.02
@@ -414,6 +418,55 @@ def select_candidates(scores: np.ndarray, k: int) -> list[tuple[int, int]]:
     return sorted(keep)
 
 
+def screen_tables(sample, params: Params, scale: float, n_points: int = SCREEN_PPF_POINTS):
+    """A fragment's small point-pair tables (model, scene) for the screen."""
+    from .ppf import pair_table
+    idx = np.linspace(0, len(sample.fracture) - 1, min(n_points, len(sample.fracture))).astype(np.int64)
+    normals = sample.fracture_plane_normals if sample.fracture_plane_normals is not None else sample.fracture_normals
+    pts, nrm = sample.fracture[idx], normals[idx]
+    step = params.ppf_distance_step * scale
+    return (pair_table(pts, nrm, step, params.ppf_angle_step_deg),
+            pair_table(pts, -nrm, step, params.ppf_angle_step_deg, reference_stride=3, sort=False))
+
+
+def ppf_support(pairs, tables: dict, params: Params, scale: float) -> list[tuple[int, int, float]]:
+    """(i, j, support of the best pose cluster carrying j onto i) for each pair."""
+    from .ppf import vote_poses
+    out = []
+    for i, j in pairs:
+        votes = vote_poses(tables[i][0], tables[j][1], 2 * params.ppf_distance_step * scale, keep=1)
+        out.append((i, j, float(votes[0][1]) if votes else 0.0))
+    return out
+
+
+def normalised_support(support: np.ndarray) -> np.ndarray:
+    """Support over the geometric mean of the two fragments' best supports: a fragment with a
+    large fracture surface gathers more votes from every partner."""
+    best = support.max(axis=1)
+    return support / np.maximum(np.sqrt(np.outer(best, best)), 1e-12)
+
+
+def _screen_blocks(n: int, parallelism: int) -> list[tuple[list[tuple[int, int]], tuple[int, ...]]]:
+    """Split the pairs i<j into blocks of rows x columns, so that a job builds the tables of
+    only the fragments its block touches."""
+    per_side = 1 if parallelism <= 1 else max(1, min(n, math.ceil(math.sqrt(8 * parallelism))))
+    bounds = np.linspace(0, n, per_side + 1).astype(int)
+    blocks = []
+    for a in range(per_side):
+        for b in range(a, per_side):
+            rows, cols = range(bounds[a], bounds[a + 1]), range(bounds[b], bounds[b + 1])
+            pairs = [(i, j) for i in rows for j in cols if i < j]
+            if pairs:
+                blocks.append((pairs, tuple(sorted({k for p in pairs for k in p}))))
+    return blocks
+
+
+def _ppf_screen_job(payload, *prepared):
+    pairs, needs, params, scale = payload
+    tables = {k: screen_tables(p.sample, params, scale) for k, p in zip(needs, prepared)}
+    return ppf_support(pairs, tables, params, scale)
+
+
 # --- engine jobs (module level, so Ray workers import them by name) -------------
 
 def _match_job(payload, *prepared):
@@ -715,11 +768,25 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
 
         # 2. screen all contour pairs in one batched call
         t0 = time.perf_counter()
-        scores = cache.get_array("screen", *hashes)
-        if scores is None or scores.shape != (n, n):
-            result = screen(prepared, params, be)
-            scores = result.scores
-            cache.put_array("screen", scores, *hashes)
+        lcs = cache.get_array("screen", *hashes)
+        if lcs is None or lcs.shape != (n, n):
+            lcs = screen(prepared, params, be).scores
+            cache.put_array("screen", lcs, *hashes)
+        # the contour LCS ranks partners at chance on many-piece heaps; the point-pair votes
+        # of each fragment pair (small tables, all pairs) rank them
+        support = cache.get_array("screen-ppf", *hashes)
+        if support is None or support.shape != (n, n):
+            support = np.zeros((n, n))
+
+            def took_support(job, result):
+                for i, j, v in result:
+                    support[i, j] = support[j, i] = v
+
+            eng.map(_ppf_screen_job, [Job((pairs, needs, params, scale), needs)
+                                      for pairs, needs in _screen_blocks(n, eng.parallelism)],
+                    {i: prepared[i] for i in range(n)}, took_support)
+            cache.put_array("screen-ppf", support, *hashes)
+        scores = normalised_support(support) + SCREEN_LCS_WEIGHT * lcs
         if objects is not None:
             objects = np.asarray(objects)
             if objects.shape != (n,):

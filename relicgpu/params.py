@@ -59,7 +59,7 @@ class Params:
     icp_iterations: int = 40
     icp_tolerance: float = 1e-5      # stop when the mean distance d changes less than this
     verify_at_most: int = 6          # fits verified per pair, best-touching first, until one is accepted
-    plane_iterations: int = 8        # point-to-plane polish after ICP
+    plane_iterations: int = 20       # point-to-plane polish after ICP (stops early when converged)
     icp_reject: float = 0.03         # nearest pairs farther than this are not used in the fit
     icp_trim: float = 0.2            # ... nor those farther than 3x this quantile of the distances
 
