@@ -420,10 +420,9 @@ def select_candidates(scores: np.ndarray, k: int) -> list[tuple[int, int]]:
 
 def screen_tables(sample, params: Params, scale: float, n_points: int = SCREEN_PPF_POINTS):
     """A fragment's small point-pair tables (model, scene) for the screen."""
+    from .pipeline import ppf_points
     from .ppf import pair_table
-    idx = np.linspace(0, len(sample.fracture) - 1, min(n_points, len(sample.fracture))).astype(np.int64)
-    normals = sample.fracture_plane_normals if sample.fracture_plane_normals is not None else sample.fracture_normals
-    pts, nrm = sample.fracture[idx], normals[idx]
+    pts, nrm = ppf_points(sample, n_points)
     step = params.ppf_distance_step * scale
     return (pair_table(pts, nrm, step, params.ppf_angle_step_deg),
             pair_table(pts, -nrm, step, params.ppf_angle_step_deg, reference_stride=3, sort=False))

@@ -162,6 +162,13 @@ def _distinct(poses: np.ndarray, order: np.ndarray, count: int, tol: float) -> l
     return taken
 
 
+def ppf_points(sample: SurfaceSample, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Up to n fracture points spread over the sample, with their plane-fit normals."""
+    idx = np.linspace(0, len(sample.fracture) - 1, min(n, len(sample.fracture))).astype(np.int64)
+    normals = sample.fracture_plane_normals if sample.fracture_plane_normals is not None else sample.fracture_normals
+    return sample.fracture[idx], normals[idx]
+
+
 _PPF_TABLES: dict = {}  # id(sample) -> (sample, settings, table): a fragment meets many partners
 
 
@@ -172,9 +179,7 @@ def _ppf_table(sample: SurfaceSample, params: Params, scale: float, role: str) -
     hit = _PPF_TABLES.get((id(sample), role))
     if hit is not None and hit[0] is sample and hit[1] == settings:
         return hit[2]
-    idx = np.linspace(0, len(sample.fracture) - 1, min(params.ppf_points, len(sample.fracture))).astype(np.int64)
-    normals = sample.fracture_plane_normals if sample.fracture_plane_normals is not None else sample.fracture_normals
-    points, normals = sample.fracture[idx], normals[idx]
+    points, normals = ppf_points(sample, params.ppf_points)
     if role == "model":
         table = pair_table(points, normals, settings[2], params.ppf_angle_step_deg)
     else:
