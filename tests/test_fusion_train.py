@@ -1,5 +1,9 @@
 """Fusion training (torch): NumPy and torch forward passes agree, training lowers the loss,
 the true correspondences of a synthetic pair are right, the shipped weights load."""
+import hashlib
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -84,6 +88,13 @@ def test_shipped_weights_are_a_trained_mlp_with_their_record():
     assert model.weights[0].shape[0] == 8 and model.weights[-1].shape[1] == 1
     out = fusion_mod.fuse(np.random.default_rng(0).normal(size=(50, 4)), model)
     assert out.shape == (50,) and np.all(np.isfinite(out))
+    # the record beside the weights describes these very weights and the command that made them
+    data = Path(fusion_mod.__file__).parent / "data"
+    record = json.loads((data / "fusion_default.json").read_text())
+    assert record["sha256"] == hashlib.sha256((data / "fusion_default.npz").read_bytes()).hexdigest()
+    assert record["command"].startswith("relicgpu train-fusion ") and f"--seed {record['seed']}" in record["command"]
+    assert record["seed"] == model.meta["config"]["seed"]
+    assert record["heldout"]["selected_step"] == model.meta["selected_step"]
 
 
 def test_cli_rejects_a_weights_path_without_npz(tmp_path, capsys):
