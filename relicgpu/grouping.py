@@ -168,6 +168,7 @@ def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None)
     from .backends import resolve
     from .params import Params
     from .segment import segment
+    from .verify import vertex_normals
 
     v = np.asarray(fragment.vertices, np.float64)
     f = np.asarray(fragment.faces, np.int64)
@@ -182,7 +183,7 @@ def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None)
     if not orig.any():  # all fracture (a tiny chip): describe it as one surface
         orig = np.ones(len(f), bool)
 
-    vn = _vertex_normals(len(v), f, fn, areas)
+    vn = vertex_normals(v, f, fn, areas)
     kmax, kmin, vweight = _principal_curvatures(v, f, vn, orig, areas)
     q = (0.25, 0.5, 0.75)
     kmax_q = _wquantiles(kmax, vweight, q)
@@ -252,30 +253,28 @@ def spectrum_at(d: "Descriptor", radius: float) -> float:
     return float(np.exp(np.interp(x, r[ok], np.log(spectrum[ok]))))
 
 
-def _fracture_patches(v, f, face_region, frac, areas, top=PATCHES):
-    """(P, 3) the largest fracture patches: area and the spreads (2 sigma) of their faces along
-    the two in-plane principal axes; the other side of the same cut has about the same."""
-    rows = []
+def _patch_moments(v, f, face_region, frac, areas):
+    """Per fracture patch (of 6 faces or more): its face areas, face centres, their area-weighted
+    mean and covariance."""
     centres = v[f].mean(axis=1)
     for r in np.unique(face_region[frac]):
         m = face_region == r
         if m.sum() < 6:
             continue
-        w = areas[m]
-        c = centres[m]
+        w, c = areas[m], centres[m]
         mu = (c * w[:, None]).sum(0) / w.sum()
-        ev = np.linalg.eigvalsh(((c - mu) * w[:, None]).T @ (c - mu) / w.sum())
+        yield w, c, mu, ((c - mu) * w[:, None]).T @ (c - mu) / w.sum()
+
+
+def _fracture_patches(v, f, face_region, frac, areas, top=PATCHES):
+    """(P, 3) the largest fracture patches: area and the spreads (2 sigma) of their faces along
+    the two in-plane principal axes; the other side of the same cut has about the same."""
+    rows = []
+    for w, _, _, cov in _patch_moments(v, f, face_region, frac, areas):
+        ev = np.linalg.eigvalsh(cov)
         rows.append((float(w.sum()), 2 * np.sqrt(max(ev[2], 0.0)), 2 * np.sqrt(max(ev[1], 0.0))))
     rows.sort(key=lambda t: -t[0])
     return np.array(rows[:top], np.float64).reshape(-1, 3)
-
-
-def _vertex_normals(nv, f, fn, areas):
-    n = np.zeros((nv, 3))
-    w = fn * areas[:, None]
-    for k in range(3):
-        np.add.at(n, f[:, k], w)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
 def _principal_curvatures(v, f, vn, face_mask, areas):
@@ -352,16 +351,8 @@ def _wall_thickness(v, f, fn, areas, orig, rays=THICKNESS_RAYS):
 
 def _patch_height(v, f, face_region, frac, areas):
     """Area-weighted RMS distance of fracture face centres from their patch's best-fit plane."""
-    centres = v[f].mean(axis=1)
     num = den = 0.0
-    for r in np.unique(face_region[frac]):
-        m = face_region == r
-        if m.sum() < 6:
-            continue
-        w = areas[m]
-        c = centres[m]
-        mu = (c * w[:, None]).sum(0) / w.sum()
-        cov = ((c - mu) * w[:, None]).T @ (c - mu) / w.sum()
+    for w, c, mu, cov in _patch_moments(v, f, face_region, frac, areas):
         normal = np.linalg.eigh(cov)[1][:, 0]
         h = (c - mu) @ normal
         num += float((w * h * h).sum())

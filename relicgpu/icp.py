@@ -86,13 +86,13 @@ def ransac_poses(source: np.ndarray, target: np.ndarray, iterations: int, inlier
             break
         mask = inl[b]
         pose = fit_rigid(source[mask], target[mask])
-        if any(_same_pose(pose, p, inlier) for p, _ in out):
+        if any(same_pose(pose, p, inlier) for p, _ in out):
             continue
         out.append((pose, int(counts[b])))
     return out
 
 
-def _same_pose(p: np.ndarray, q: np.ndarray, tol: float) -> bool:
+def same_pose(p: np.ndarray, q: np.ndarray, tol: float) -> bool:
     return np.linalg.norm(p[:3, 3] - q[:3, 3]) < 3 * tol and rotation_angle_deg(p[:3, :3] @ q[:3, :3].T) < 10.0
 
 

@@ -14,7 +14,7 @@ from . import contour as contour_mod
 from . import features as features_mod
 from . import fusion as fusion_mod
 from .backends import resolve
-from .icp import _same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
+from .icp import same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
 from .io import Fragment
 from .params import Params
 from .ppf import PairTable, pair_table, smoothed_normals, vote_poses
@@ -157,7 +157,7 @@ def _distinct(poses: np.ndarray, order: np.ndarray, count: int, tol: float) -> l
     for k in order:
         if len(taken) == count:
             break
-        if not any(_same_pose(poses[k], poses[t], tol) for t in taken):
+        if not any(same_pose(poses[k], poses[t], tol) for t in taken):
             taken.append(int(k))
     return taken
 

@@ -103,7 +103,7 @@ class PairTable:
 
 
 def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_step_deg: float = 12.0,
-               reference_stride: int = 1, max_distance: float | None = None, sort: bool = True) -> PairTable:
+               reference_stride: int = 1, sort: bool = True) -> PairTable:
     """Every pair (ref, other) with ref among every `reference_stride`-th point."""
     n = len(points)
     angle_step = np.radians(angle_step_deg)
@@ -113,8 +113,6 @@ def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_
     r = np.repeat(refs, n)
     o = np.tile(np.arange(n), len(refs))
     ok = r != o
-    if max_distance is not None:
-        ok &= np.linalg.norm(points[o] - points[r], axis=1) <= max_distance
     r, o = r[ok], o[ok]
     key = _keys(_pair_features(points[r], normals[r], points[o], normals[o], dist_step, angle_step), angle_bins)
     alpha = _alphas(frames, r, points[o])
@@ -126,8 +124,7 @@ def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_
 
 
 def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alpha_bins: int = 30, keep: int = 24,
-               bucket_cap: int = 32, cluster_angle_deg: float = 12.0,
-               cells_per_reference: int = 1) -> list[tuple[np.ndarray, int]]:
+               bucket_cap: int = 32, cluster_angle_deg: float = 12.0) -> list[tuple[np.ndarray, int]]:
     """Poses carrying the scene's points onto the model's, from Drost's votes: the best cell of
     each scene reference gives a pose; up to `keep` of them, most supported first, with their
     support (the votes of all poses within cluster_distance / cluster_angle_deg of them)."""
@@ -150,12 +147,9 @@ def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alph
     cell = (ref_index * na + model.ref[match]) * alpha_bins + abin
     votes = np.bincount(cell, minlength=len(refs) * na * alpha_bins).reshape(len(refs), na * alpha_bins)
 
-    t = min(cells_per_reference, votes.shape[1])
-    best = votes.argmax(axis=1)[:, None] if t == 1 else np.argpartition(-votes, t - 1, axis=1)[:, :t]
-    best_votes = np.take_along_axis(votes, best, axis=1).ravel()
-    best = best.ravel()
+    best = votes.argmax(axis=1)
+    best_votes = votes[np.arange(len(refs)), best]
     m_ref, m_alpha = best // alpha_bins, best % alpha_bins
-    refs = np.repeat(refs, t)
     angle = (m_alpha + 0.5) / alpha_bins * 2 * np.pi - np.pi
     c, sn = np.cos(angle), np.sin(angle)
     Rx = np.tile(np.eye(4), (len(refs), 1, 1))
@@ -190,13 +184,11 @@ def _similar(poses: np.ndarray, centre: np.ndarray, distance: float, angle_deg: 
 
 def ppf_poses(a_points: np.ndarray, a_normals: np.ndarray, b_points: np.ndarray, b_normals: np.ndarray,
               dist_step: float, angle_step_deg: float = 12.0, alpha_bins: int = 30, reference_stride: int = 3,
-              max_distance: float | None = None, keep: int = 24,
-              bucket_cap: int = 32, cells_per_reference: int = 1) -> list[tuple[np.ndarray, int]]:
+              keep: int = 24, bucket_cap: int = 32) -> list[tuple[np.ndarray, int]]:
     """Poses carrying b onto a where b's surface (normals as given, i.e. already flipped for a
     mating surface) lies on a's; up to `keep`, most votes first, with their vote counts."""
     if len(a_points) < 3 or len(b_points) < 3:
         return []
-    model = pair_table(a_points, a_normals, dist_step, angle_step_deg, 1, max_distance)
-    scene = pair_table(b_points, b_normals, dist_step, angle_step_deg, reference_stride, max_distance, sort=False)
-    return vote_poses(model, scene, 2 * dist_step, alpha_bins, keep, bucket_cap,
-                      cells_per_reference=cells_per_reference)
+    model = pair_table(a_points, a_normals, dist_step, angle_step_deg)
+    scene = pair_table(b_points, b_normals, dist_step, angle_step_deg, reference_stride, sort=False)
+    return vote_poses(model, scene, 2 * dist_step, alpha_bins, keep, bucket_cap)

@@ -1063,9 +1063,9 @@ def _dot(x, y):
 
 # --- poses -----------------------------------------------------------------
 
-def _random_unit(rng):
+def _random_unit(rng, dim=3):
     while True:
-        x = rng.normal(size=3)
+        x = rng.normal(size=dim)
         n = np.linalg.norm(x)
         if n > 1e-6:
             return x / n
@@ -1086,21 +1086,13 @@ def _weighted_quantile(values, weights, q):
 
 
 def _random_rotation(rng):
-    q = _random_unit4(rng)
+    q = _random_unit(rng, 4)
     w, x, y, z = q
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
     ])
-
-
-def _random_unit4(rng):
-    while True:
-        x = rng.normal(size=4)
-        n = np.linalg.norm(x)
-        if n > 1e-6:
-            return x / n
 
 
 def _random_placement(vertices, rng):
