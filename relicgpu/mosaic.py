@@ -568,13 +568,15 @@ class Prepared:
             self.denoised = self.smoothed
 
 
-def prepare_image(image: np.ndarray, params: MosaicParams | None = None) -> Prepared:
+def prepare_image(image: np.ndarray, params: MosaicParams | None = None, noise: float | None = None) -> Prepared:
+    """3.3.1 for one image. `noise` is the noise sigma that sets the variance floor of Eq. 1-3
+    (None: this image's own estimate); register_pair gives both images of a pair the larger one."""
     p = params or MosaicParams()
     gray = to_gray(image)
     smoothed = median3(gray, p.median)
     floor = p.norm_var_floor
     if p.noise_floor_k > 0:
-        floor = max(floor, (p.noise_floor_k * noise_sigma(gray)) ** 2)
+        floor = max(floor, (p.noise_floor_k * (noise_sigma(gray) if noise is None else noise)) ** 2)
 
     def normalise(img):
         n = local_normalise(img, p.norm_window, p.norm_mean, p.norm_var, p.alpha1, p.alpha2, floor)
@@ -854,8 +856,11 @@ def register_pair(left, right, params: MosaicParams | None = None, backend="nump
     timings = {}
     gl, gr = to_gray(left), to_gray(right)
     f = max(1, int(np.ceil(max(gl.shape + gr.shape) / p.max_size)))
-    pl = prepare_image(_block_mean(gl, f) if f > 1 else gl, p)
-    pr = prepare_image(_block_mean(gr, f) if f > 1 else gr, p)
+    sl, sr = (_block_mean(g, f) if f > 1 else g for g in (gl, gr))
+    # one variance floor for both images: with each image's own, a faint texture under the floor of
+    # the noisier image is amplified less there than in the other, and its entropies differ throughout
+    noise = max(noise_sigma(sl), noise_sigma(sr))
+    pl, pr = prepare_image(sl, p, noise), prepare_image(sr, p, noise)
     timings["preprocess"] = time.perf_counter() - t0
     t = time.perf_counter()
     regions = find_feature_regions(pl, p, backend, names[0], 1 + p.retries)
@@ -915,7 +920,8 @@ def register_pair(left, right, params: MosaicParams | None = None, backend="nump
         lo_r = np.maximum(np.floor(start).astype(int) - half - radius, 0)
         crop_l = gl[lo_l[0]:centre[0] + half + 1, lo_l[1]:centre[1] + half + 1]
         crop_r = gr[lo_r[0]:int(start[0]) + half + radius + 2, lo_r[1]:int(start[1]) + half + radius + 2]
-        full_l, full_r = prepare_image(crop_l, p), prepare_image(crop_r, p)
+        noise = max(noise_sigma(gl), noise_sigma(gr))
+        full_l, full_r = prepare_image(crop_l, p, noise), prepare_image(crop_r, p, noise)
         local = replace(region, centre=tuple(int(v) for v in centre - lo_l), width=width)
         em = match_entropy(full_l, full_r, local, p, backend, names, start=start - lo_r, radius=radius)
         corr = match_correlation(full_l, full_r, local, (em.row, em.col), em.angle, p)
