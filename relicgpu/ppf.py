@@ -65,41 +65,36 @@ def _frames(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return T
 
 
-def _pair_features(p1, n1, p2, n2, dist_step, angle_step):
-    d = p2 - p1
-    length = np.linalg.norm(d, axis=-1)
+def _pair_keys(points, normals, refs, dist_step, angle_step, angle_bins):
+    """(R,n) keys of the quantised features of every pair (refs[r], other point)."""
+    d = points[None, :, :] - points[refs][:, None, :]
+    length = np.linalg.norm(d, axis=2)
     u = d / np.maximum(length, 1e-12)[..., None]
 
-    def ang(a, b):
-        return np.arccos(np.clip(np.einsum("...i,...i->...", a, b), -1.0, 1.0))
+    def ang(cos):
+        return np.floor(np.arccos(np.clip(cos, -1.0, 1.0)) / angle_step).astype(np.int64)
 
-    q = np.stack([length / dist_step, ang(n1, u) / angle_step, ang(n2, u) / angle_step, ang(n1, n2) / angle_step],
-                 axis=-1)
-    return np.floor(q).astype(np.int64)
-
-
-def _alphas(frames: np.ndarray, ref: np.ndarray, other_points: np.ndarray) -> np.ndarray:
-    """Angle about +x of each other point in the frame of its reference point."""
-    p = np.einsum("nij,nj->ni", frames[ref][:, :3, :3], other_points) + frames[ref][:, :3, 3]
-    return np.arctan2(p[:, 2], p[:, 1])
-
-
-def _keys(q: np.ndarray, angle_bins: int) -> np.ndarray:
-    return ((q[:, 0] * angle_bins + q[:, 1]) * angle_bins + q[:, 2]) * angle_bins + q[:, 3]
+    q0 = np.floor(length / dist_step).astype(np.int64)
+    q1 = ang(np.einsum("rnd,rd->rn", u, normals[refs]))
+    q2 = ang(np.einsum("rnd,nd->rn", u, normals))
+    q3 = ang(normals[refs] @ normals.T)
+    return ((q0 * angle_bins + q1) * angle_bins + q2) * angle_bins + q3
 
 
 @dataclass(frozen=True, eq=False)
 class PairTable:
     """Quantised features of point pairs (ref, other) of one oriented point set, sorted by key
-    when it is the model side. Depends on the points and the quantisation only, so a fragment's
-    tables can be built once and used against every partner."""
+    (with `start`, the first pair of every key) when it is the model side. Depends on the points
+    and the quantisation only, so a fragment's tables can be built once and used against every
+    partner."""
     frames: np.ndarray  # (N,4,4) point to origin, normal onto +x
     key: np.ndarray  # (M,) int64
-    ref: np.ndarray  # (M,) the pair's reference point
-    alpha: np.ndarray  # (M,) angle of the other point about +x in the reference's frame
+    ref: np.ndarray  # (M,) int32: the pair's reference, as an index into `references`
+    alpha: np.ndarray  # (M,) float32: angle of the other point about +x in the reference's frame
     n_points: int
     references: np.ndarray  # the points used as references
     centroid: np.ndarray  # of the points
+    start: np.ndarray | None = None  # (K+2,) model side: pairs start[k]:start[k+1] have key k
 
 
 def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_step_deg: float = 12.0,
@@ -110,41 +105,51 @@ def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_
     angle_bins = int(np.ceil(np.pi / angle_step)) + 1
     frames = _frames(points, normals) if n else np.zeros((0, 4, 4))
     refs = np.arange(0, n, max(1, reference_stride))
-    r = np.repeat(refs, n)
-    o = np.tile(np.arange(n), len(refs))
-    ok = r != o
-    r, o = r[ok], o[ok]
-    key = _keys(_pair_features(points[r], normals[r], points[o], normals[o], dist_step, angle_step), angle_bins)
-    alpha = _alphas(frames, r, points[o])
+    # every (reference, other) pair at once, a row per reference; a point is not its own partner
+    key = _pair_keys(points, normals, refs, dist_step, angle_step, angle_bins)
+    # angle about +x of each other point in the frame of its reference
+    yz = np.matmul(frames[refs, 1:3, :3], points.T) + frames[refs, 1:3, 3][:, :, None]
+    alpha = np.arctan2(yz[:, 1], yz[:, 0]).astype(np.float32)
+    other = np.ones((len(refs), n), bool)
+    other[np.arange(len(refs)), refs] = False
+    key, alpha = key[other], alpha[other]
+    ref = np.repeat(np.arange(len(refs), dtype=np.int32), max(n - 1, 0))
+    start = None
     if sort:
         order = np.argsort(key, kind="stable")
-        key, r, alpha = key[order], r[order], alpha[order]
+        key, ref, alpha = key[order], ref[order], alpha[order]
+        start = np.searchsorted(key, np.arange((int(key[-1]) if len(key) else -1) + 3))
     centroid = points.mean(axis=0) if n else np.zeros(3)
-    return PairTable(frames, key, r.astype(np.int32), alpha.astype(np.float32), n, refs, centroid)
+    return PairTable(frames, key, ref, alpha, n, refs, centroid, start)
 
 
 def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alpha_bins: int = 30, keep: int = 24,
                bucket_cap: int = 32, cluster_angle_deg: float = 12.0) -> list[tuple[np.ndarray, int]]:
     """Poses carrying the scene's points onto the model's, from Drost's votes: the best cell of
     each scene reference gives a pose; up to `keep` of them, most supported first, with their
-    support (the votes of all poses within cluster_distance / cluster_angle_deg of them)."""
+    support (the votes of all poses within cluster_distance / cluster_angle_deg of them).
+    The model table must be sorted (its `start`); it has every point as a reference."""
     na, refs = model.n_points, scene.references
     if na < 3 or scene.n_points < 3 or len(model.key) == 0 or len(scene.key) == 0:
         return []
-    lo = np.searchsorted(model.key, scene.key, "left")
-    found = np.searchsorted(model.key, scene.key, "right") - lo
+    key = np.minimum(scene.key, len(model.start) - 2)  # past the model's last key: an empty bucket
+    lo = model.start[key]
+    found = model.start[key + 1] - lo
     # A feature shared by many pairs (a flat stretch) says little and would flood the votes:
     # each scene pair votes with at most `bucket_cap` of its model pairs, spread over the bucket.
     counts = np.minimum(found, bucket_cap)
-    if counts.sum() == 0:
+    total = int(counts.sum())
+    if total == 0:
         return []
-    pair = np.repeat(np.arange(len(scene.key)), counts)
-    rank = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    match = lo[pair] + rank * found[pair] // counts[pair]
-    alpha = model.alpha[match].astype(np.float64) - scene.alpha[pair]
-    abin = np.floor((alpha + np.pi) / (2 * np.pi) * alpha_bins).astype(np.int64) % alpha_bins
-    ref_index = np.searchsorted(refs, scene.ref[pair])
-    cell = (ref_index * na + model.ref[match]) * alpha_bins + abin
+    first = np.cumsum(counts) - counts  # each scene pair's first vote
+    match = np.arange(total, dtype=np.int64) + np.repeat(lo - first, counts)
+    capped = np.flatnonzero(found > bucket_cap)
+    if len(capped):
+        spread = np.arange(bucket_cap)
+        match[first[capped][:, None] + spread] = lo[capped][:, None] + spread * found[capped][:, None] // bucket_cap
+    alpha = model.alpha[match] - np.repeat(scene.alpha, counts)
+    abin = np.floor((alpha + np.float32(np.pi)) * np.float32(alpha_bins / (2 * np.pi))).astype(np.int64) % alpha_bins
+    cell = (np.repeat(scene.ref, counts).astype(np.int64) * na + model.ref[match]) * alpha_bins + abin
     votes = np.bincount(cell, minlength=len(refs) * na * alpha_bins).reshape(len(refs), na * alpha_bins)
 
     best = votes.argmax(axis=1)
