@@ -144,18 +144,24 @@ class MosaicParams:
     thre: float | None = None      # sequential-detection threshold; None: exact (see the module notes)
     min_overlap: float = 0.2       # the overlap is at least this fraction of the left image's width
     max_shift: float = 0.1         # perpendicular shift between neighbours, fraction of the height
-    min_correlation: float = 0.7   # normalised correlation (band-passed images) a match needs
-    min_distinctness: float = 1.1  # T elsewhere (beyond a block) must exceed T at the match by this factor
+    min_correlation: float = 0.5   # whole-overlap correlation (band-passed images) a placement needs ...
+    min_margin: float = 0.05       # ... and by how much it must beat any placement more than distinct_px away
+    distinct_px: float = 8.0       # placements closer than this (px, at either feature centre) are one
+    votes: int = 2                 # regions that must refine onto a placement before the last region is tried
+    refine_count: int = 3          # per region, the placements with the best raw correlation refined ...
+    refine_floor: float = 0.2      # ... when it is at least this
+    refine_iterations: int = 20    # Gauss-Newton steps of the refinement at most
+    overlap_step: int = 3          # the overlap correlation samples every overlap_step-th pixel ...
+    min_overlap_samples: int = 200  # ... and needs this many
+    min_distinctness: float = 1.1  # coarse slack: candidates within this factor of the best T keep their exact T
     min_isotropy: float = 0.1      # feature regions with a less isotropic gradient are skipped
     retries: int = 4               # further feature regions tried when a match is rejected
     max_size: int = 1000           # larger images are registered shrunk, then refined at full size
     coarse_sigma: float = 2.0      # hierarchical search: Gaussian (px) before Eq. 1-3 for the coarse stage ...
     fine_sigma: float = 0.0        # ... and for the fine stage (0: the median-filtered image as is)
     corr_bandpass: tuple = (1.5, 8.0)  # the correlation check compares G(s1) - G(s2) of the median-filtered images
-    candidates: int = 8            # coarse minima of T taken to the fine search when the best is ambiguous ...
+    candidates: int = 8            # coarse minima of T taken to the fine search (placements) ...
     candidate_slack: float = 1.3   # ... those with T within this factor of the best
-    corr_margin: float = 0.1       # an ambiguous region's best-correlating candidate must beat the next by this,
-                                   # and another region's match must agree with it (the vote)
 
 
 @dataclass
@@ -167,11 +173,12 @@ class PairMatch:
     offset: np.ndarray             # (2,) left_point - right_point: the right origin in left coordinates
     template_width: int
     cost: float                    # T at the match: summed |entropy difference| over the cross blocks
-    correlation: float             # normalised correlation of the feature area and its match (a check)
-    distinctness: float            # T of the best match elsewhere over T of this one (a check)
-    region_rank: int               # 0: the paper's feature region; k: the k-th next, when earlier ones failed
+    correlation: float             # band-passed correlation over the whole overlap (the check)
+    distinctness: float            # T of the best coarse match elsewhere over T of this one (reported)
+    region_rank: int               # 0: the paper's feature region; k: the k-th next
     fcm_centres: np.ndarray        # (3,) high, medium, low
     fcm_iterations: int
+    margin: float = np.inf         # correlation over that of the best placement more than distinct_px away
     timings: dict = field(default_factory=dict)
 
 
@@ -560,6 +567,7 @@ class Prepared:
     coarse_levels: np.ndarray = None
     denoised: np.ndarray = None
     bandpass: np.ndarray = None
+    border: float = 0.0   # px at the border where `bandpass` is unreliable
 
     def __post_init__(self):
         if self.coarse_normalised is None:
@@ -593,7 +601,8 @@ def prepare_image(image: np.ndarray, params: MosaicParams | None = None, noise: 
     if p.corr_bandpass:
         bandpass = (ndimage.gaussian_filter(smoothed, p.corr_bandpass[0], mode="nearest")
                     - ndimage.gaussian_filter(smoothed, p.corr_bandpass[1], mode="nearest"))
-    return Prepared(gray, smoothed, normalised, levels, coarse_normalised, coarse_levels, denoised, bandpass)
+    border = 1.5 * float(p.corr_bandpass[1]) if p.corr_bandpass else 0.0
+    return Prepared(gray, smoothed, normalised, levels, coarse_normalised, coarse_levels, denoised, bandpass, border)
 
 
 def template_width(width: float, led_centre: float, c: float) -> float:
@@ -814,16 +823,132 @@ def isotropy(image: np.ndarray, centre, width: int) -> float:
     return float(small / big) if big > 0 else 0.0
 
 
-def match_correlation(left: Prepared, right: Prepared, region: FeatureRegion, right_point, angle: float,
-                      params: MosaicParams | None = None) -> float:
-    """Normalised correlation of the median-filtered feature area (rotated by angle) and the
-    same area around right_point in the right image: the check that a match is real."""
+def _to_right(rows, cols, left_point, right_point, angle: float):
+    """Where left pixels (rows, cols) lie in the right image under the placement: right pixel q
+    sits at left_point + R(angle) (q - right_point), so q = right_point + R(angle)^T (p - left_point)."""
+    a = np.deg2rad(angle)
+    ca, sa = np.cos(a), np.sin(a)
+    dy, dx = rows - left_point[0], cols - left_point[1]
+    return right_point[0] + ca * dy - sa * dx, right_point[1] + sa * dy + ca * dx
+
+
+def _overlap_samples(left: Prepared, right: Prepared, left_point, right_point, angle: float, step: int,
+                     margin: float):
+    """Left pixels on a `step` grid whose place in the right image lies `margin` px inside it;
+    neither lies within the band-pass's outer scale of its image's border (the filter's
+    border padding makes structure there that both images do not share)."""
+    h, w = left.gray.shape
+    hr, wr = right.gray.shape
+    edge = int(np.ceil(left.border))
+    margin = max(margin, right.border)
+    rows, cols = np.mgrid[edge:h - edge:step, edge:w - edge:step]
+    rows, cols = rows.ravel(), cols.ravel()
+    qy, qx = _to_right(rows, cols, left_point, right_point, angle)
+    inside = (qy >= margin) & (qy <= hr - 1 - margin) & (qx >= margin) & (qx <= wr - 1 - margin)
+    return rows[inside], cols[inside]
+
+
+def _correlated(prep: Prepared) -> np.ndarray:
+    """The image the correlation compares: band-passed, or median-filtered without `corr_bandpass`."""
+    return prep.bandpass if prep.bandpass is not None else prep.smoothed
+
+
+def overlap_correlation(left: Prepared, right: Prepared, left_point, right_point, angle: float,
+                        params: MosaicParams | None = None) -> float:
+    """Normalised correlation of the band-passed images over the whole overlap that the placement
+    implies (every `overlap_step`-th pixel; -1 when fewer than `min_overlap_samples` overlap)."""
     p = params or MosaicParams()
-    _, box = cross_blocks(region.width, p)
-    src_l, src_r = (left.bandpass, right.bandpass) if p.corr_bandpass else (left.smoothed, right.smoothed)
-    a = _sample_box(src_l, region.centre, box, angle)
-    b = _sample_box(src_r, right_point, box, 0.0)
-    return _ncc(a, b)
+    rows, cols = _overlap_samples(left, right, left_point, right_point, angle, p.overlap_step, 1.0)
+    if rows.size < p.min_overlap_samples:
+        return -1.0
+    qy, qx = _to_right(rows, cols, left_point, right_point, angle)
+    src_l, src_r = _correlated(left), _correlated(right)
+    b = ndimage.map_coordinates(src_r, [qy, qx], order=1, mode="nearest")
+    return _ncc(src_l[rows, cols], b)
+
+
+def refine_placement(left: Prepared, right: Prepared, left_point, right_point, angle: float,
+                     params: MosaicParams | None = None, gradient=None) -> tuple[np.ndarray, float, float]:
+    """The placement (right_point, angle) that maximises the band-passed correlation over the
+    whole overlap, from a start within a few pixels: Gauss-Newton on left = a * right(q(p)) + b
+    over the right point, the angle and a, b (gain and bias). `gradient` is np.gradient of the
+    right band-passed image when already computed. Returns (right_point, angle, correlation)."""
+    p = params or MosaicParams()
+    rp = np.array(right_point, np.float64)
+    theta = np.deg2rad(angle)
+    limit = np.deg2rad(max(map(abs, p.angles), default=0.0) + 1.0)
+    rows, cols = _overlap_samples(left, right, left_point, rp, angle, p.overlap_step, 8.0)
+    if rows.size < p.min_overlap_samples:
+        return rp, float(angle), -1.0
+    src_r = _correlated(right)
+    gy, gx = gradient if gradient is not None else np.gradient(src_r)
+    target = _correlated(left)[rows, cols]
+    dy, dx = rows - left_point[0], cols - left_point[1]
+    hr, wr = right.gray.shape
+    for _ in range(p.refine_iterations):
+        ca, sa = np.cos(theta), np.sin(theta)
+        qy, qx = rp[0] + ca * dy - sa * dx, rp[1] + sa * dy + ca * dx
+        ok = (qy >= 0) & (qy <= hr - 1) & (qx >= 0) & (qx <= wr - 1)
+        if ok.sum() < p.min_overlap_samples:
+            break
+        at = [qy[ok], qx[ok]]
+        r = ndimage.map_coordinates(src_r, at, order=1)
+        ry, rx = ndimage.map_coordinates(gy, at, order=1), ndimage.map_coordinates(gx, at, order=1)
+        t = target[ok]
+        gain_bias = np.stack([r, np.ones_like(r)], 1)
+        coef, *_ = np.linalg.lstsq(gain_bias, t, rcond=None)
+        gain, residual = coef[0], t - gain_bias @ coef
+        dq_dtheta = (-sa * dy[ok] - ca * dx[ok], ca * dy[ok] - sa * dx[ok])
+        jac = np.stack([gain * ry, gain * rx, gain * (ry * dq_dtheta[0] + rx * dq_dtheta[1]), r, np.ones_like(r)], 1)
+        step, *_ = np.linalg.lstsq(jac, residual, rcond=None)
+        move = np.clip(step[:2], -2.0, 2.0)  # a step at most the band-pass's fine scale
+        turn = float(np.clip(step[2], -np.deg2rad(0.5), np.deg2rad(0.5)))
+        rp = rp + move
+        theta = float(np.clip(theta + turn, -limit, limit))
+        if np.abs(move).max() < 0.01 and abs(turn) < 1e-4:
+            break
+    angle = float(np.rad2deg(theta))
+    return rp, angle, overlap_correlation(left, right, left_point, rp, angle, p)
+
+
+@dataclass
+class Placement:
+    """One hypothesis of where the right image sits: a feature region's entropy match, then
+    (when refined) the placement that maximises the whole-overlap correlation from it."""
+    region_index: int
+    region: FeatureRegion
+    match: EntropyMatch
+    right_point: np.ndarray
+    angle: float
+    correlation: float      # whole-overlap band-passed correlation
+    refined: bool = False
+
+
+def _placement_distance(a: Placement, b: Placement) -> float:
+    """The largest distance between where the two placements put either feature centre in the right image."""
+    out = 0.0
+    for pt in (a.region.centre, b.region.centre):
+        qa = np.array(_to_right(pt[0], pt[1], a.region.centre, a.right_point, a.angle))
+        qb = np.array(_to_right(pt[0], pt[1], b.region.centre, b.right_point, b.angle))
+        out = max(out, float(np.linalg.norm(qa - qb)))
+    return out
+
+
+def _decide(placements: list, p: MosaicParams, final: bool):
+    """The best refined placement and its margin over every other placement more than
+    `distinct_px` away (its refined correlation, or the raw one when not refined), when it
+    is accepted: correlation >= min_correlation, margin >= min_margin and, before the last
+    region (`final` False), `votes` feature regions refined onto it. Else (None, margin)."""
+    refined = [h for h in placements if h.refined and h.correlation > -1.0]
+    if not refined:
+        return None, 0.0
+    best = max(refined, key=lambda h: h.correlation)
+    near = [h for h in placements if _placement_distance(best, h) <= p.distinct_px]
+    rivals = [h.correlation for h in placements if h not in near]
+    margin = best.correlation - max(rivals, default=-1.0)
+    support = len({h.region_index for h in near if h.refined})
+    ok = best.correlation >= p.min_correlation and margin >= p.min_margin and (final or support >= p.votes)
+    return (best if ok else None), margin
 
 
 def _block_mean(gray: np.ndarray, factor: int) -> np.ndarray:
@@ -832,25 +957,20 @@ def _block_mean(gray: np.ndarray, factor: int) -> np.ndarray:
     return gray[:h, :w].reshape(h // factor, factor, w // factor, factor).mean((1, 3))
 
 
-def _consistent(region_a: FeatureRegion, match_a: EntropyMatch, region_b: FeatureRegion, match_b: EntropyMatch,
-                p: MosaicParams) -> bool:
-    """Whether two feature regions' matches fit one rigid motion with a rotation within the tried
-    angles (plus a degree): the vector between the two centres keeps its length and turns by
-    at most that angle, to 2 px."""
-    d_left = np.subtract(region_b.centre, region_a.centre, dtype=np.float64)
-    d_right = np.array([match_b.row - match_a.row, match_b.col - match_a.col])
-    turn = np.deg2rad(max(map(abs, p.angles), default=0.0) + 1.0)
-    return bool(np.linalg.norm(d_right - d_left) <= 2.0 + np.linalg.norm(d_left) * turn)
-
-
 def register_pair(left, right, params: MosaicParams | None = None, backend="numpy",
                   names=("left", "right")) -> PairMatch:
     """Find where `right` sits against `left` (arrays, gray or colour), the right image
     overlapping the right part of the left one. Raises MosaicError when it cannot.
 
+    Each feature region's entropy matches (the best and the next coarse minima) are
+    placements; the best by whole-overlap correlation are refined, and one is accepted when
+    it correlates well, clearly better than any other placement, and (before the last region)
+    a second region's match refines onto it too.
+
     Images larger than `max_size` are registered on copies shrunk by an integer factor f
     (block means), and the match is then refined at full resolution by the fine search
-    alone, f + fine_radius pixels either way; the checks are those of the shrunk copies."""
+    alone, f + fine_radius pixels either way, then by the correlation over the two crops;
+    the checks are those of the shrunk copies."""
     p = params or MosaicParams()
     t0 = time.perf_counter()
     timings = {}
@@ -871,48 +991,46 @@ def register_pair(left, right, params: MosaicParams | None = None, backend="nump
         block_entropy(pr.coarse_levels, p.block, p.levels, backend), np.float64)
     timings["entropy_map"] = time.perf_counter() - t
     t = time.perf_counter()
-    faults = []
-    tentative = []  # (region, match, correlation) of ambiguous regions that a second one may confirm
-    for region in regions:
-        if isotropy(pl.smoothed, region.centre, region.width) < p.min_isotropy:
-            faults.append("edge-like (one gradient direction)")
-            continue
+    gradient = np.gradient(_correlated(pr))
+    placements, edge_like, chosen, margin = [], 0, None, 0.0
+    usable = [k for k, r in enumerate(regions) if isotropy(pl.smoothed, r.centre, r.width) >= p.min_isotropy]
+    edge_like = len(regions) - len(usable)
+    timings["verify"] = 0.0
+    for n, k in enumerate(usable):
+        region = regions[k]
         em = match_entropy(pl, pr, region, p, backend, names, hmap, hmap_coarse=hmap_coarse)
-        corr = match_correlation(pl, pr, region, (em.row, em.col), em.angle, p)
-        if em.distinctness < p.min_distinctness and em.alternatives:
-            # ambiguous in T: the coarse minima are told apart by how well their areas correlate, and
-            # the winner stands only when another feature region's winner agrees with it (a vote)
-            found = [em] + em.alternatives
-            corrs = [corr] + [match_correlation(pl, pr, region, (a.row, a.col), a.angle, p) for a in em.alternatives]
-            order = np.argsort(corrs)[::-1]
-            if corrs[order[0]] >= p.min_correlation and corrs[order[0]] - corrs[order[1]] >= p.corr_margin:
-                em, corr = replace(found[order[0]], distinctness=em.distinctness), corrs[order[0]]
-                agree = [t for t in tentative if _consistent(t[0], t[1], region, em, p)]
-                if agree:
-                    other = max(agree, key=lambda t: t[2])
-                    if other[2] > corr:
-                        region, em, corr = other
-                    break
-                tentative.append((region, em, corr))
-                faults.append("ambiguous (matches elsewhere too)")
-                continue
-        if em.distinctness < p.min_distinctness:
-            faults.append("ambiguous (matches elsewhere too)")
-        elif corr < p.min_correlation:
-            faults.append(f"poor match (correlation < {p.min_correlation})")
-        else:
+        tv = time.perf_counter()
+        found = [Placement(k, region, m, np.array([m.row, m.col]), m.angle,
+                           overlap_correlation(pl, pr, region.centre, (m.row, m.col), m.angle, p))
+                 for m in [em] + em.alternatives]
+        found.sort(key=lambda h: -h.correlation)
+        for h in found[:p.refine_count]:
+            if h.correlation >= p.refine_floor:
+                h.right_point, h.angle, h.correlation = refine_placement(pl, pr, region.centre, h.right_point,
+                                                                         h.angle, p, gradient)
+                h.refined = True
+        placements += found
+        chosen, margin = _decide(placements, p, final=n == len(usable) - 1)
+        timings["verify"] += time.perf_counter() - tv
+        if chosen is not None:
             break
-    else:
-        why = ", ".join(f"{faults.count(f)} {f}" for f in sorted(set(faults)))
+    if chosen is None:
+        if not placements:
+            why = f"{edge_like} feature regions edge-like (one gradient direction)"
+        else:
+            best = max(placements, key=lambda h: h.correlation)
+            why = (f"the best placement correlates {best.correlation:.2f} over the overlap (needs "
+                   f"{p.min_correlation}), {margin:.2f} above another one (needs {p.min_margin})")
         raise MosaicError(f"{names[0]} and {names[1]}: no overlap found: {len(regions)} feature regions tried, "
                           f"{why}; the images must overlap by at least {p.min_overlap:.0%}")
     timings["match"] = time.perf_counter() - t
-    distinct, rank = em.distinctness, len(faults)
+    region, em, corr = chosen.region, chosen.match, chosen.correlation
+    right_point, angle = chosen.right_point, chosen.angle
     if f > 1:  # refine at full resolution around the scaled-up match, on crops around both areas
         t = time.perf_counter()
         width = f * region.width
         centre = np.array([f * region.centre[0] + (f - 1) // 2, f * region.centre[1] + (f - 1) // 2])
-        start = np.array([f * em.row + (f - 1) / 2.0, f * em.col + (f - 1) / 2.0])
+        start = f * right_point + (f - 1) / 2.0
         radius = f + p.fine_radius
         # room for the rotated area, the normalisation window and the median filter
         half = int(0.55 * width * (1.0 + np.deg2rad(max(map(abs, p.angles), default=0.0)))) + p.norm_window + 4
@@ -924,15 +1042,16 @@ def register_pair(left, right, params: MosaicParams | None = None, backend="nump
         full_l, full_r = prepare_image(crop_l, p, noise), prepare_image(crop_r, p, noise)
         local = replace(region, centre=tuple(int(v) for v in centre - lo_l), width=width)
         em = match_entropy(full_l, full_r, local, p, backend, names, start=start - lo_r, radius=radius)
-        corr = match_correlation(full_l, full_r, local, (em.row, em.col), em.angle, p)
-        em = replace(em, row=em.row + lo_r[0], col=em.col + lo_r[1])
+        local_point, angle, _ = refine_placement(full_l, full_r, local.centre, (em.row, em.col), angle, p)
+        right_point = local_point + lo_r
         region = replace(region, centre=tuple(int(v) for v in centre), width=width)
         timings["full_resolution"] = time.perf_counter() - t
     left_point = np.array(region.centre, np.float64)
-    right_point = np.array([em.row, em.col], np.float64)
+    right_point = np.asarray(right_point, np.float64)
     timings["total"] = time.perf_counter() - t0
-    return PairMatch(left_point, right_point, em.angle, left_point - right_point, region.width, em.cost, corr,
-                     distinct, rank, region.centres, region.fcm.iterations, timings)
+    return PairMatch(left_point, right_point, angle, left_point - right_point, region.width, em.cost, corr,
+                     em.distinctness, chosen.region_index, region.centres, region.fcm.iterations, margin=margin,
+                     timings=timings)
 
 
 # --- stitching -------------------------------------------------------------------

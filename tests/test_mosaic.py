@@ -396,31 +396,69 @@ def test_large_photographs_are_registered_shrunk_then_refined():
     assert np.abs(pm.right_point - truth).max() <= 1.0
 
 
-def test_vote_consistency_of_two_regions():
-    # centres 100 px apart vertically; tried angles up to 1.5 deg, so up to 2.5 deg (4.36 px) + 2 px is allowed
+def test_one_variance_floor_from_the_given_noise():
+    rng = np.random.default_rng(5)
+    img = 100.0 + rng.normal(0, 3.0, (60, 60))
+    p = M.MosaicParams(coarse_sigma=0.0, corr_bandpass=())
+    prep = M.prepare_image(img, p, noise=10.0)
+    want = M.local_normalise(M.median3(img), p.norm_window, p.norm_mean, p.norm_var, var_floor=(2.0 * 10.0) ** 2)
+    np.testing.assert_allclose(prep.normalised, want)
+    own = M.prepare_image(img, p)  # its own estimate, about 3: a far lower floor, so more contrast
+    assert own.normalised.std() > 2.0 * prep.normalised.std()
+
+
+def _placement(centre, right_point, corr, k=0, refined=True):
+    region = M.FeatureRegion(centre, 42, None, None, None)
+    m = M.EntropyMatch(right_point[0], right_point[1], 0.0, 1.0, 1.0)
+    return M.Placement(k, region, m, np.array(right_point, float), 0.0, corr, refined)
+
+
+def test_decide_needs_a_margin_and_votes():
     p = M.MosaicParams()
-    a = M.FeatureRegion((100, 300), 42, None, None, None)
-    b = M.FeatureRegion((200, 300), 42, None, None, None)
-    ma = M.EntropyMatch(90.0, 100.0, 0.0, 1.0, 1.0)
+    a = _placement((100, 300), (90, 100), 0.95, k=0)
+    same = _placement((200, 300), (190.5, 100.0), 0.93, k=1)     # another region, 0.5 px from a's placement
+    rival = _placement((100, 300), (90, 130), 0.92, k=0)         # 30 px away
+    near = _placement((100, 300), (93, 100), 0.99, k=0, refined=False)  # within distinct_px: the same placement
+    assert M._placement_distance(a, same) == pytest.approx(0.5)
+    best, margin = M._decide([a, near], p, final=False)
+    assert best is None  # one region only, and not the last
+    best, margin = M._decide([a, near], p, final=True)
+    assert best is a and margin == pytest.approx(0.95 + 1.0)
+    best, margin = M._decide([a, same, near], p, final=False)
+    assert best is a  # two regions refined onto it
+    best, margin = M._decide([a, same, rival], p, final=True)
+    assert best is None and margin == pytest.approx(0.03)  # a rival within min_margin
+    low = _placement((100, 300), (90, 100), 0.4, k=0)
+    assert M._decide([low], p, final=True)[0] is None  # below min_correlation
 
-    def at(row, col):
-        return M.EntropyMatch(row, col, 0.0, 1.0, 1.0)
 
-    assert M._consistent(a, ma, b, at(190.0, 100.0), p)        # the same translation
-    assert M._consistent(a, ma, b, at(190.0, 105.0), p)        # 2.9 deg turn of a 100 px vector: 5 px <= 6.36
-    assert not M._consistent(a, ma, b, at(190.0, 107.0), p)    # 7 px: more than the angles allow
-    assert not M._consistent(a, ma, b, at(150.0, 100.0), p)    # the distance between the regions changed
-
-
-def test_band_passed_correlation_ignores_a_smooth_gradient():
+def test_overlap_correlation_ignores_a_smooth_gradient():
     # a ramp correlates with itself shifted along it on the raw image, not once band-passed
     yy, xx = np.mgrid[0:120, 0:120].astype(float)
     rng = np.random.default_rng(3)
     img = 2.0 * xx + rng.normal(0, 3.0, xx.shape)
     p = M.MosaicParams()
     prep = M.prepare_image(img, p)
-    region = M.FeatureRegion((60, 60), 30, None, None, None)
-    assert M.match_correlation(prep, prep, region, (60, 60), 0.0, p) > 0.9        # the same place
-    shifted = M.match_correlation(prep, prep, region, (30, 60), 0.0, p)            # 30 px along the ramp's isolines
-    raw = M.match_correlation(prep, prep, region, (30, 60), 0.0, M.MosaicParams(corr_bandpass=()))
+    raw_p = M.MosaicParams(corr_bandpass=())
+    raw_prep = M.prepare_image(img, raw_p)
+    assert M.overlap_correlation(prep, prep, (60, 60), (60, 60), 0.0, p) > 0.99   # the same place
+    shifted = M.overlap_correlation(prep, prep, (60, 60), (30, 60), 0.0, p)      # 30 px along the isolines
+    raw = M.overlap_correlation(raw_prep, raw_prep, (60, 60), (30, 60), 0.0, raw_p)
     assert raw > 0.8 and shifted < 0.3
+
+
+def test_refine_placement_recovers_offset_and_angle():
+    img = _photo("camera").astype(float)
+    rng = np.random.default_rng(11)
+    shape, origin_left, origin_right, angle = (240, 240), (120, 60), (130, 200), 1.3
+    left = _crop(img, origin_left, shape) + rng.normal(0, 4, shape)
+    right = 0.9 * _crop(img, origin_right, shape, angle) + 10 + rng.normal(0, 4, shape)
+    p = M.MosaicParams()
+    pl, pr = M.prepare_image(left, p), M.prepare_image(right, p)
+    centre = (120, 200)
+    truth = _truth(origin_left, origin_right, shape, angle, np.array(centre, float))
+    start = truth + np.array([2.5, -3.0])
+    before = M.overlap_correlation(pl, pr, centre, start, 0.0, p)
+    point, found, corr = M.refine_placement(pl, pr, centre, start, 0.0, p)
+    assert np.abs(point - truth).max() < 0.25 and abs(found - angle) < 0.1
+    assert corr > 0.9 > before
