@@ -140,7 +140,7 @@ def run(n_pairs: int, seed: int, backend_name: str, progress: bool = True, noise
     for i in tqdm(range(n_pairs), desc="pairs", disable=not progress, file=sys.stderr):
         name = names[i % len(names)]
         pair = make_pair(samples[name], rng, noise)
-        rec = dict(image=name, overlap=pair["overlap"], angle=pair["angle"])
+        rec = dict(index=i, image=name, overlap=pair["overlap"], angle=pair["angle"])
         t0 = time.perf_counter()
         try:
             pm = mosaic.register_pair(pair["left"], pair["right"], params, backend)
@@ -150,8 +150,8 @@ def run(n_pairs: int, seed: int, backend_name: str, progress: bool = True, noise
         if pm is not None:
             centre, tw = tuple(int(v) for v in pm.left_point), pm.template_width
             found = pm.right_point
-            rec.update(accepted=True, corr=pm.correlation, distinctness=pm.distinctness, region_rank=pm.region_rank,
-                       angle_found=pm.angle, timings=pm.timings)
+            rec.update(accepted=True, corr=pm.correlation, margin=pm.margin, distinctness=pm.distinctness,
+                       region_rank=pm.region_rank, angle_found=pm.angle, timings=pm.timings)
         else:  # OpenCV gets the paper's feature region (or the middle of the band)
             pl = mosaic.prepare_image(pair["left"], params)
             try:
@@ -212,8 +212,10 @@ def summarise(result: dict) -> str:
     ]
     bad = [r for r in rows if r["err_inf"] > 1]
     if bad:
-        lines.append("relicgpu misses: " + ", ".join(f"{r['image']} ({_miss(r)})" for r in bad))
-    stages = ["preprocess", "feature_region", "entropy_map", "match"]
+        lines.append("relicgpu misses (pair: image, overlap, rotation, outcome):")
+        lines += [f"  #{r['index']}: {r['image']}, overlap {r['overlap']:.0%}, rotation {r['angle']:+.2f} deg, "
+                  f"{_miss(r)}" for r in bad]
+    stages = ["preprocess", "feature_region", "entropy_map", "match", "verify"]
     timed = [r["timings"] for r in rows if "timings" in r]
     if timed:
         lines.append("relicgpu median stage times (ms): " + ", ".join(
@@ -222,7 +224,10 @@ def summarise(result: dict) -> str:
 
 
 def _miss(rec: dict) -> str:
-    return "rejected" if not rec["accepted"] else f"off {rec['err']:.1f} px"
+    if not rec["accepted"]:
+        return "rejected: " + rec["error"].split("no overlap found: ", 1)[-1]
+    return (f"off {rec['err']:.1f} px (region {rec['region_rank']}, overlap correlation {rec['corr']:.2f}, "
+            f"margin {rec['margin']:.2f}, angle found {rec['angle_found']:+.2f})")
 
 
 def example(path: str, seed: int = 3) -> None:
