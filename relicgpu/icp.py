@@ -157,7 +157,8 @@ def facing_poses(centre_a, normal_a, centre_b, normal_b, steps: int) -> np.ndarr
 
 
 def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backend, iterations: int,
-                reject: float, floor: float, tolerance: float = 0.0, trim: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+                reject: float, floor: float, tolerance: float = 0.0, trim: float = 0.5,
+                index=None) -> tuple[np.ndarray, np.ndarray]:
     """ICP (Alg. 5, as `icp`) for many starting poses at once: every round is ONE nearest-neighbour
     launch over all hypotheses' points. Stops after `iterations` rounds or when no hypothesis's
     mean distance changes by `tolerance` or more. Returns the poses and each one's share of source
@@ -165,14 +166,16 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
 
     Pairs count when nearer than 3x the `trim` quantile of the distances (within [floor, reject]):
     where only part of the source touches the target (a partial contact) a low quantile keeps
-    the rest of the source from dragging the fit off."""
+    the rest of the source from dragging the fit off. index: the target's nearest-neighbour
+    index where the caller keeps one."""
     poses = np.array(poses, np.float64)
     h, n = len(poses), len(source)
     share = np.zeros(h)
     prev = np.full(h, np.inf)
+    index = backend.nearest_index(target) if index is None else index  # one upload (and grid) for all rounds
     for _ in range(iterations):
         moved = np.matmul(source, np.swapaxes(poses[:, :3, :3], 1, 2)) + poses[:, None, :3, 3]
-        idx, dist = backend.nearest_neighbors(moved.reshape(-1, 3), target)
+        idx, dist = index.query(moved.reshape(-1, 3))
         idx = np.asarray(idx, np.int64).reshape(h, n)
         dist = np.asarray(dist, np.float64).reshape(h, n)
         cutoff = np.maximum(floor, np.minimum(reject, 3.0 * np.quantile(dist, trim, axis=1)))
@@ -202,32 +205,48 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
 
 
 def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, init: np.ndarray,
-                          backend, iterations: int, cutoff: float) -> np.ndarray:
-    """Polish a converged pose by minimising distances to the target's tangent planes.
+                          backend, iterations: int, cutoff: float, index=None) -> np.ndarray:
+    """Polish converged poses by minimising distances to the target's tangent planes.
 
     Two samplings of one surface never share points, so point-to-point ICP stops at the
     sampling's graininess; the linearised point-to-plane step (6x6 normal equations)
-    goes below it. Pairs farther than `cutoff` are left out.
+    goes below it. Pairs farther than `cutoff` are left out. init: one (4,4) pose or a
+    stack (H,4,4), polished together (one nearest-neighbour launch a round), each stopping
+    on its own when its step vanishes or fewer than 6 pairs are left.
     """
-    pose = np.array(init, np.float64)
+    poses = np.array(init, np.float64)
+    single = poses.ndim == 2
+    poses = poses.reshape(-1, 4, 4)
+    active = np.ones(len(poses), bool)
+    n = len(source)
+    index = backend.nearest_index(target) if index is None else index
     for _ in range(iterations):
-        moved = apply(pose, source)
-        idx, dist = backend.nearest_neighbors(moved, target)
-        idx = np.asarray(idx, np.int64)
-        keep = np.asarray(dist) < cutoff
-        if keep.sum() < 6:
+        live = np.flatnonzero(active)
+        if len(live) == 0:
             break
-        p, q, n = moved[keep], target[idx[keep]], target_normals[idx[keep]]
-        a = np.hstack([np.cross(p, n), n])
-        b = -np.einsum("ij,ij->i", p - q, n)
-        try:
-            x = np.linalg.solve(a.T @ a + 1e-12 * np.eye(6), a.T @ b)
-        except np.linalg.LinAlgError:
-            break
-        step = np.eye(4)
-        step[:3, :3] = axis_rotation(x[:3] / (np.linalg.norm(x[:3]) or 1.0), float(np.linalg.norm(x[:3])))
-        step[:3, 3] = x[3:]
-        pose = step @ pose
-        if np.linalg.norm(x) < 1e-9:
-            break
-    return pose
+        moved = np.matmul(source, np.swapaxes(poses[live, :3, :3], 1, 2)) + poses[live, None, :3, 3]
+        idx, dist = index.query(moved.reshape(-1, 3))
+        idx = np.asarray(idx, np.int64).reshape(len(live), n)
+        keep = (np.asarray(dist).reshape(len(live), n) < cutoff).astype(np.float64)
+        enough = keep.sum(axis=1) >= 6
+        q, nrm = target[idx], target_normals[idx]
+        a = np.concatenate([np.cross(moved, nrm), nrm], axis=2) * keep[..., None]
+        b = -np.einsum("hij,hij->hi", moved - q, nrm)
+        ata = np.matmul(np.swapaxes(a, 1, 2), a) + 1e-12 * np.eye(6)
+        atb = np.matmul(np.swapaxes(a, 1, 2), b[..., None])[..., 0]
+        for k, h in enumerate(live):
+            if not enough[k]:
+                active[h] = False
+                continue
+            try:
+                x = np.linalg.solve(ata[k], atb[k])
+            except np.linalg.LinAlgError:
+                active[h] = False
+                continue
+            step = np.eye(4)
+            step[:3, :3] = axis_rotation(x[:3] / (np.linalg.norm(x[:3]) or 1.0), float(np.linalg.norm(x[:3])))
+            step[:3, 3] = x[3:]
+            poses[h] = step @ poses[h]
+            if np.linalg.norm(x) < 1e-9:
+                active[h] = False
+    return poses[0] if single else poses

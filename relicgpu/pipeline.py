@@ -267,17 +267,24 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
                 for pose in facing_poses(P.centre, P.normal, Q.centre, Q.normal, params.patch_turns):
                     starts.append(pose)
                     origins.append(("patch", -1, -1, np.zeros((0, 2), np.int64)))
+    indexes: dict = {}  # nearest-neighbour indexes of the pair's own point sets, built once
+
+    def index_of(points: np.ndarray):
+        if id(points) not in indexes:
+            indexes[id(points)] = (points, be.nearest_index(points))
+        return indexes[id(points)][1]
+
     candidates = []
     if starts:
         # rank every start by a short batched ICP on a small sample, keep the best few
         sub_b = pb.sample.fracture[:: max(1, len(pb.sample.fracture) // params.screen_points)]
         reject, floor = params.screen_reject * scale, params.contact_distance * scale
         poses, share = batched_icp(sub_b, pa.sample.fracture, np.array(starts), be, params.screen_iterations,
-                                   reject, floor, trim=params.icp_trim)
+                                   reject, floor, trim=params.icp_trim, index=index_of(pa.sample.fracture))
         # the most promising starts go on longer (a start can be 20 degrees off)
         keep = np.argsort(-share, kind="stable")[: params.screen_keep]
         poses, share = batched_icp(sub_b, pa.sample.fracture, poses[keep], be, params.screen_more_iterations,
-                                   reject, floor, trim=params.icp_trim)
+                                   reject, floor, trim=params.icp_trim, index=index_of(pa.sample.fracture))
         order = _distinct(poses, np.argsort(-share, kind="stable"), params.hypotheses, 0.02 * scale)
         candidates = [(share[k], poses[k], *origins[keep[k]][1:]) for k in order]
     timings["coarse"] = time.perf_counter() - t0
@@ -288,17 +295,18 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
         # ICP of all hypotheses together (one nearest-neighbour launch per round), then each polished
         fine, share = batched_icp(pb.sample.fracture, pa.sample.fracture, np.array([c[1] for c in candidates]), be,
                                   params.icp_iterations, params.icp_reject * scale, params.contact_distance * scale,
-                                  params.icp_tolerance * scale, params.icp_trim)
-        for k in np.argsort(-share, kind="stable")[: params.verify_at_most]:
-            polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
-                                             fine[k], be, params.plane_iterations, params.contact_distance * scale)
-            fits.append((polished, *candidates[k][2:]))
+                                  params.icp_tolerance * scale, params.icp_trim, index_of(pa.sample.fracture))
+        best_first = np.argsort(-share, kind="stable")[: params.verify_at_most]
+        polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
+                                         fine[best_first], be, params.plane_iterations, params.contact_distance * scale,
+                                         index_of(pa.sample.fracture))
+        fits = [(polished[i], *candidates[k][2:]) for i, k in enumerate(best_first)]
     # verify the best-touching fits first; stop at the first accepted
     best = None
     for transform, ca, cb, pairs in fits:
         ver = verify(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
                      params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
-                     params.max_penetration)
+                     params.max_penetration, index_of)
         rank = (ver.accepted, ver.overlap - ver.penetration)
         if best is None or rank > best[0]:
             best = (rank, transform, ver, ca, cb, pairs)

@@ -44,11 +44,19 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.nda
 
 
 def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, contact: float,
-           max_rmse: float, min_overlap: float, depth: float, max_penetration: float) -> Verification:
-    """Check b moved by `transform` against a (all lengths absolute)."""
+           max_rmse: float, min_overlap: float, depth: float, max_penetration: float,
+           index_of=None) -> Verification:
+    """Check b moved by `transform` against a (all lengths absolute).
+
+    index_of: optional function from one of the samples' point arrays to its nearest-neighbour
+    index (kept by a caller that verifies several transforms of one pair); every query here
+    goes to a's or b's own, unmoved, points."""
+    if index_of is None:
+        index_of = backend.nearest_index
+    inv = np.linalg.inv(transform)
     b_frac = apply(transform, b.fracture)
-    i_ba, d_ba = backend.nearest_neighbors(b_frac, a.fracture)
-    i_ab, d_ab = backend.nearest_neighbors(a.fracture, b_frac)
+    i_ba, d_ba = index_of(a.fracture).query(b_frac)
+    i_ab, d_ab = index_of(b.fracture).query(apply(inv, a.fracture))  # distances and pairs as in a's frame
     d_ba, d_ab = np.asarray(d_ba, np.float64), np.asarray(d_ab, np.float64)
     in_b, in_a = d_ba < contact, d_ab < contact
     overlap = float(max(in_b.mean(), in_a.mean()))
@@ -60,10 +68,9 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
     both = np.concatenate([plane_b[in_b], plane_a[in_a]])
     rmse = float(np.sqrt(np.mean(both ** 2))) if len(both) else float("inf")
 
-    pen_b = _inside_share(apply(transform, b.surface), a, depth, contact, backend)
+    pen_b = _inside_share(apply(transform, b.surface), a, depth, contact, index_of)
     # a's surface in b's frame is the same check with b fixed
-    inv = np.linalg.inv(transform)
-    pen_a = _inside_share(apply(inv, a.surface), b, depth, contact, backend)
+    pen_a = _inside_share(apply(inv, a.surface), b, depth, contact, index_of)
     penetration = float(max(pen_a, pen_b))
 
     if overlap < min_overlap:
@@ -76,17 +83,17 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
     return Verification(overlap, rmse, penetration, True, "accepted")
 
 
-def _inside_share(points: np.ndarray, other: SurfaceSample, depth: float, contact: float, backend) -> float:
+def _inside_share(points: np.ndarray, other: SurfaceSample, depth: float, contact: float, index_of) -> float:
     """Share of `points` (outside the contact zone) lying deeper than `depth` behind the nearest
     surface point of `other`, by that point's outward normal."""
     if len(points) == 0:
         return 0.0
     if len(other.fracture):
-        _, d = backend.nearest_neighbors(points, other.fracture)
+        _, d = index_of(other.fracture).query(points)
         points = points[np.asarray(d) > 2 * contact]  # the contact zone touches by design
         if len(points) == 0:
             return 0.0
-    idx, dist = backend.nearest_neighbors(points, other.surface)
+    idx, dist = index_of(other.surface).query(points)
     idx = np.asarray(idx, np.int64)
     signed = np.einsum("ij,ij->i", points - other.surface[idx], other.normals[idx])
     # far from the other surface the nearest normal says nothing about inside or outside

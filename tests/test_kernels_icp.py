@@ -122,6 +122,39 @@ def test_nearest_neighbours_non_finite_is_an_error(device_backend):
         device_backend.nearest_neighbors(np.zeros((3, 3)), target)
 
 
+def test_nearest_index_answers_every_query_like_nearest_neighbours(backend):
+    """One index, many queries (an ICP's rounds): small (brute force) and large (grid) ones,
+    inside and far outside the target's box, an empty one; each against the reference."""
+    rng = np.random.default_rng()
+    target = _sphere(rng, 30000) + 5.0
+    index = backend.nearest_index(target)
+    for source in (rng.normal(size=(40, 3)) + 5.0, _sphere(rng, 120000, 1.01) + 5.0, target[::7],
+                   rng.normal(size=(5000, 3)) * 50, target[:1]):
+        idx, dist = index.query(source)
+        assert idx.dtype == np.int32 and dist.dtype == np.float64 and idx.shape == (len(source),)
+        i_ref, d_ref = _check_nn(backend, source, target)
+        np.testing.assert_allclose(dist, np.linalg.norm(source - target[idx], axis=1), rtol=1e-12, atol=0)
+        both = np.concatenate([source, target])
+        assert np.all(np.abs(dist - d_ref) <= 1e-6 * np.linalg.norm(both.max(0) - both.min(0)))
+    idx, dist = index.query(np.zeros((0, 3)))
+    assert idx.shape == (0,) and dist.shape == (0,)
+    one = backend.nearest_index(target[3:4])  # a length-1 target
+    idx, dist = one.query(target[:10])
+    assert np.all(idx == 0)
+    np.testing.assert_allclose(dist, np.linalg.norm(target[:10] - target[3], axis=1), rtol=1e-12)
+
+
+def test_nearest_index_faults(backend):
+    with pytest.raises(ValueError):
+        backend.nearest_index(np.zeros((0, 3)))
+    bad = np.random.default_rng().random((50, 3))
+    bad[4, 2] = np.inf
+    with pytest.raises(ValueError):
+        backend.nearest_index(bad)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        backend.nearest_index(np.ones((5, 3))).query(bad)
+
+
 @pytest.mark.parametrize("n", [1, 7, 1000, 300000])
 def test_cross_covariance(backend, n):
     if getattr(backend, "real", np.float64) != np.float64:

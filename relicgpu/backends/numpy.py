@@ -6,6 +6,8 @@ adversarial inputs. Keep it plain and obviously right, not fast.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -159,14 +161,43 @@ def nearest_neighbors(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarra
 
     Ties may resolve to any of the equally near points. An empty target is an error.
     """
-    src = np.asarray(source, np.float64).reshape(-1, 3)
+    return nearest_index(target).query(source)
+
+
+def nearest_index(target: np.ndarray) -> "NearestIndex":
+    """The target prepared once for many nearest-neighbour queries (an ICP's rounds):
+    `nearest_index(t).query(s)` is `nearest_neighbors(s, t)`."""
     dst = np.asarray(target, np.float64).reshape(-1, 3)
     if len(dst) == 0:
         raise ValueError("nearest_neighbors: the target point set is empty")
-    if len(src) == 0:
-        return np.zeros(0, np.int32), np.zeros(0)
-    dist, idx = cKDTree(dst).query(src, k=1, workers=-1)
-    return idx.astype(np.int32), dist
+    if not np.isfinite(dst).all():
+        raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
+    return NearestIndex(cKDTree(dst))
+
+
+def _query_threads() -> int:
+    """Threads for a k-d tree query: all cores, unless the process was given fewer (a Ray
+    worker runs with OMP_NUM_THREADS=1; sixteen workers each starting sixteen threads
+    per query ran at half speed)."""
+    try:
+        return max(1, int(os.environ["OMP_NUM_THREADS"]))
+    except (KeyError, ValueError):
+        return -1
+
+
+class NearestIndex:
+    def __init__(self, tree: cKDTree):
+        self.tree = tree
+
+    def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        src = np.asarray(source, np.float64).reshape(-1, 3)
+        if len(src) == 0:
+            return np.zeros(0, np.int32), np.zeros(0)
+        if not np.isfinite(src).all():
+            raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
+        workers = _query_threads() if len(src) >= 2048 else 1
+        dist, idx = self.tree.query(src, k=1, workers=workers)
+        return idx.astype(np.int32), dist
 
 
 def cross_covariance(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None):

@@ -314,26 +314,12 @@ class OpenCLBackend:
         src, dst = _prep.nn_inputs(source, target)
         if len(src) == 0:
             return np.zeros(0, np.int32), np.zeros(0)
-        ns, nt = len(src), len(dst)
-        with self._lock:
-            src_d = self._to_device(src.astype(self.real, copy=False))
-            dst_d = self._to_device(dst.astype(self.real, copy=False))
-            lo, hi = self._bounds(dst_d, nt)
-            self._bounds(src_d, ns)
-            centre = 0.5 * (lo + hi)
-            c = [self.real(x) for x in centre]
-            src32, dst32 = self._empty(12 * ns), self._empty(12 * nt)
-            self._run("icp.cl", "shift_to_float32", ns, src_d, np.int32(ns), *c, src32)
-            self._run("icp.cl", "shift_to_float32", nt, dst_d, np.int32(nt), *c, dst32)
-            idx = self._empty(4 * ns)
-            if ns * nt <= _BRUTE_PAIRS[self.kind] or nt <= 64:
-                self._run("icp.cl", "brute_query", ns, src32, np.int32(ns), dst32, np.int32(nt), idx,
-                          local=min(128, self.local_size))
-            else:
-                self._grid_query(src32, ns, dst32, nt, lo - centre, hi - lo, idx)
-            dist = self._empty(np.dtype(self.real).itemsize * ns)
-            self._run("icp.cl", "exact_distance", ns, src_d, dst_d, idx, np.int32(ns), dist)
-            return self._from_device(idx, ns, np.int32), self._from_device(dist, ns, self.real).astype(np.float64)
+        return self.nearest_index(dst).query(src)
+
+    def nearest_index(self, target: np.ndarray) -> "OpenCLNearestIndex":
+        """The target uploaded and (when queries need it) sorted into a grid once, for many queries."""
+        _, dst = _prep.nn_inputs(np.zeros((0, 3)), target)
+        return OpenCLNearestIndex(self, dst)
 
     def _bounds(self, points_d, n: int):
         threads = min(n, _REDUCE_THREADS[self.kind])
@@ -345,46 +331,6 @@ class OpenCLBackend:
         lo = self._from_device(lo, (threads, 3), self.real).astype(np.float64)
         hi = self._from_device(hi, (threads, 3), self.real).astype(np.float64)
         return lo.min(0), hi.max(0)
-
-    def _grid_query(self, src32, ns: int, dst32, nt: int, origin: np.ndarray, extent: np.ndarray, idx):
-        cl = self.cl
-        o = [np.float32(x) for x in origin]
-        occupied = self._empty(4)
-        state = {"counts": None, "cells": 0}
-
-        def count(points, n: int, h: float):
-            dims = _prep.grid_dims(extent, h)
-            cells = int(np.prod(dims))
-            if state["counts"] is None or state["cells"] < cells + 1:
-                state["counts"], state["cells"] = self._empty(4 * (cells + 1)), cells + 1
-            cl.enqueue_fill_buffer(self.queue, state["counts"], np.int32(0), 0, 4 * (cells + 1))
-            cl.enqueue_fill_buffer(self.queue, occupied, np.int32(0), 0, 4)
-            self._run("icp.cl", "grid_count", n, points, np.int32(n), *o, np.float32(1.0 / h),
-                      *[np.int32(d) for d in dims], state["counts"], occupied)
-            return cells, dims
-
-        def occupied_at(h: float) -> int:
-            count(dst32, nt, h)
-            return int(self._from_device(occupied, 1, np.int32)[0])
-
-        h = _prep.choose_cell_size(extent, nt, occupied_at)
-
-        def sort_into_cells(points, n: int):
-            cells, dims = count(points, n, h)
-            counts = self._from_device(state["counts"], cells, np.int32)
-            starts = np.zeros(cells + 1, np.int32)
-            np.cumsum(counts, out=starts[1:])
-            starts_d = self._to_device(starts)
-            cl.enqueue_fill_buffer(self.queue, state["counts"], np.int32(0), 0, 4 * (cells + 1))
-            sorted_points, sorted_ids = self._empty(12 * n), self._empty(4 * n)
-            self._run("icp.cl", "grid_scatter", n, points, np.int32(n), *o, np.float32(1.0 / h),
-                      *[np.int32(d) for d in dims], starts_d, state["counts"], sorted_points, sorted_ids)
-            return starts_d, sorted_points, sorted_ids, dims
-
-        starts, sorted_points, sorted_ids, dims = sort_into_cells(dst32, nt)
-        _, sorted_queries, query_ids, _ = sort_into_cells(src32, ns)
-        self._run("icp.cl", "grid_query", ns, sorted_queries, query_ids, np.int32(ns), *o, np.float32(h),
-                  np.float32(1.0 / h), *[np.int32(d) for d in dims], starts, sorted_points, sorted_ids, idx)
 
     def cross_covariance(self, source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None):
         s = np.asarray(source, np.float64).reshape(-1, 3)
@@ -413,3 +359,92 @@ class OpenCLBackend:
                       *[r(x) for x in ct], np.int32(n), np.int32(threads), part)
             h = self._from_device(part, (threads, 9), r).astype(np.float64).sum(0).reshape(3, 3)
         return cs, ct, h, wsum
+
+
+class OpenCLNearestIndex:
+    """A target point set on the device for repeated nearest-neighbour queries (an ICP's
+    rounds): uploaded, bounded and shifted once; its grid built at the first query that
+    needs one. `query` gives what `nearest_neighbors(source, target)` gives."""
+
+    def __init__(self, backend: OpenCLBackend, dst: np.ndarray):
+        self.be, self.n = backend, len(dst)
+        with backend._lock:
+            self.dst_d = backend._to_device(dst.astype(backend.real, copy=False))
+            lo, hi = backend._bounds(self.dst_d, self.n)
+            self.centre = 0.5 * (lo + hi)
+            self.origin, self.extent = lo - self.centre, hi - lo
+            self.dst32 = backend._empty(12 * self.n)
+            backend._run("icp.cl", "shift_to_float32", self.n, self.dst_d, np.int32(self.n),
+                         *[backend.real(x) for x in self.centre], self.dst32)
+        self.grid = None  # (h, dims, starts, sorted points, sorted ids)
+        self._counts, self._cells = None, 0  # per-cell counts, then the scatter's cursors
+        self._occupied = None
+
+    def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        be = self.be
+        src = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
+        ns = len(src)
+        if ns == 0:
+            return np.zeros(0, np.int32), np.zeros(0)
+        if not np.isfinite(src).all():
+            raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
+        with be._lock:
+            src_d = be._to_device(src.astype(be.real, copy=False))
+            src32 = be._empty(12 * ns)
+            be._run("icp.cl", "shift_to_float32", ns, src_d, np.int32(ns), *[be.real(x) for x in self.centre], src32)
+            idx = be._empty(4 * ns)
+            if ns * self.n <= _BRUTE_PAIRS[be.kind] or self.n <= 64:
+                be._run("icp.cl", "brute_query", ns, src32, np.int32(ns), self.dst32, np.int32(self.n), idx,
+                        local=min(128, be.local_size))
+            else:
+                if self.grid is None:
+                    self.grid = self._build_grid()
+                h, dims, starts, sorted_points, sorted_ids = self.grid
+                _, sorted_queries, query_ids = self._sort_into_cells(src32, ns, h)
+                be._run("icp.cl", "grid_query", ns, sorted_queries, query_ids, np.int32(ns), *self._o(),
+                        np.float32(h), np.float32(1.0 / h), *[np.int32(d) for d in dims], starts, sorted_points,
+                        sorted_ids, idx)
+            dist = be._empty(np.dtype(be.real).itemsize * ns)
+            be._run("icp.cl", "exact_distance", ns, src_d, self.dst_d, idx, np.int32(ns), dist)
+            return be._from_device(idx, ns, np.int32), be._from_device(dist, ns, be.real).astype(np.float64)
+
+    def _o(self):
+        return [np.float32(x) for x in self.origin]
+
+    def _count(self, points, n: int, h: float):
+        be, cl = self.be, self.be.cl
+        dims = _prep.grid_dims(self.extent, h)
+        cells = int(np.prod(dims))
+        if self._counts is None or self._cells < cells + 1:
+            self._counts, self._cells = be._empty(4 * (cells + 1)), cells + 1
+        if self._occupied is None:
+            self._occupied = be._empty(4)
+        cl.enqueue_fill_buffer(be.queue, self._counts, np.int32(0), 0, 4 * (cells + 1))
+        cl.enqueue_fill_buffer(be.queue, self._occupied, np.int32(0), 0, 4)
+        be._run("icp.cl", "grid_count", n, points, np.int32(n), *self._o(), np.float32(1.0 / h),
+                *[np.int32(d) for d in dims], self._counts, self._occupied)
+        return cells, dims
+
+    def _sort_into_cells(self, points, n: int, h: float):
+        be, cl = self.be, self.be.cl
+        cells, dims = self._count(points, n, h)
+        counts = be._from_device(self._counts, cells, np.int32)
+        starts = np.zeros(cells + 1, np.int32)
+        np.cumsum(counts, out=starts[1:])
+        starts_d = be._to_device(starts)
+        cl.enqueue_fill_buffer(be.queue, self._counts, np.int32(0), 0, 4 * (cells + 1))
+        sorted_points, sorted_ids = be._empty(12 * n), be._empty(4 * n)
+        be._run("icp.cl", "grid_scatter", n, points, np.int32(n), *self._o(), np.float32(1.0 / h),
+                *[np.int32(d) for d in dims], starts_d, self._counts, sorted_points, sorted_ids)
+        return starts_d, sorted_points, sorted_ids
+
+    def _build_grid(self):
+        be = self.be
+
+        def occupied_at(h: float) -> int:
+            self._count(self.dst32, self.n, h)
+            return int(be._from_device(self._occupied, 1, np.int32)[0])
+
+        h = _prep.choose_cell_size(self.extent, self.n, occupied_at)
+        starts, sorted_points, sorted_ids = self._sort_into_cells(self.dst32, self.n, h)
+        return h, _prep.grid_dims(self.extent, h), starts, sorted_points, sorted_ids

@@ -161,11 +161,13 @@ class WarpBackend:
         src, dst = _prep.nn_inputs(source, target)
         if len(src) == 0:
             return np.zeros(0, np.int32), np.zeros(0)
-        with self._staging_lock:  # the staging buffers are reused once the results are back
-            dst_d = self._upload_vec3d(dst, "target")
-            src_d = self._upload_vec3d(src, "source")
-            idx, dist = self.nearest_neighbors_device(src_d, dst_d)
-            return idx.numpy(), dist.numpy()
+        return self.nearest_index(dst).query(src)
+
+    def nearest_index(self, target: np.ndarray) -> "WarpNearestIndex":
+        """The target uploaded and (when queries need it) sorted into a grid once, for many queries."""
+        _, dst = _prep.nn_inputs(np.zeros((0, 3)), target)
+        with self._staging_lock:
+            return WarpNearestIndex(self, self._upload_vec3d(dst, "target"))
 
     def _bounds(self, points_d):
         """float64 (lo, hi) of finite points; raises on NaN or infinite coordinates."""
@@ -182,67 +184,8 @@ class WarpBackend:
 
     def nearest_neighbors_device(self, src_d, dst_d):
         """Nearest neighbours of device arrays (vec3d); returns device arrays (idx int32, dist float64)."""
-        wp = self.wp
-        ns, nt = src_d.shape[0], dst_d.shape[0]
-        lo, hi = self._bounds(dst_d)
         self._bounds(src_d)
-        centre = 0.5 * (lo + hi)
-        src32 = wp.empty(ns, dtype=wp.vec3, device=self.device)
-        dst32 = wp.empty(nt, dtype=wp.vec3, device=self.device)
-        self._launch(self._k_icp.shift_to_float32, ns, [src_d, wp.vec3d(*centre), src32])
-        self._launch(self._k_icp.shift_to_float32, nt, [dst_d, wp.vec3d(*centre), dst32])
-        idx = wp.empty(ns, dtype=wp.int32, device=self.device)
-        if ns * nt <= _BRUTE_PAIRS[self.kind] or nt <= 64:
-            self._launch(self._k_icp.brute_query, ns, [src32, dst32, idx])
-        else:
-            self._grid_query(src32, dst32, lo - centre, hi - lo, idx)
-        dist = wp.empty(ns, dtype=wp.float64, device=self.device)
-        self._launch(self._k_icp.exact_distance, ns, [src_d, dst_d, idx, dist])
-        return idx, dist
-
-    def _grid_query(self, src32, dst32, origin: np.ndarray, extent: np.ndarray, idx):
-        wp = self.wp
-        k = self._k_icp
-        ns, nt = src32.shape[0], dst32.shape[0]
-        origin32 = wp.vec3(*origin)
-        occupied = wp.zeros(1, dtype=wp.int32, device=self.device)
-        counts = None
-
-        def count(points, h: float):
-            nonlocal counts
-            dims = _prep.grid_dims(extent, h)
-            cells = int(np.prod(dims))
-            if counts is None or counts.shape[0] < cells + 1:
-                counts = wp.zeros(cells + 1, dtype=wp.int32, device=self.device)
-            else:
-                counts.zero_()
-            occupied.zero_()
-            self._launch(k.grid_count, points.shape[0],
-                         [points, origin32, 1.0 / h, wp.vec3i(*dims), counts, occupied])
-            return cells
-
-        def occupied_at(h: float) -> int:
-            count(dst32, h)
-            return int(occupied.numpy()[0])
-
-        h = _prep.choose_cell_size(extent, nt, occupied_at)
-        dims = wp.vec3i(*_prep.grid_dims(extent, h))
-
-        def sort_into_cells(points):
-            cells = count(points, h)
-            starts = wp.empty(cells + 1, dtype=wp.int32, device=self.device)
-            wp.utils.array_scan(counts[: cells + 1], starts, inclusive=False)
-            counts.zero_()
-            sorted_points = wp.empty(points.shape[0], dtype=wp.vec3, device=self.device)
-            sorted_ids = wp.empty(points.shape[0], dtype=wp.int32, device=self.device)
-            self._launch(k.grid_scatter, points.shape[0], [points, origin32, 1.0 / h, dims, starts, counts,
-                                                           sorted_points, sorted_ids])
-            return starts, sorted_points, sorted_ids
-
-        starts, sorted_points, sorted_ids = sort_into_cells(dst32)
-        _, sorted_queries, query_ids = sort_into_cells(src32)
-        self._launch(k.grid_query, ns, [sorted_queries, query_ids, origin32, float(h), 1.0 / h, dims,
-                                        starts, sorted_points, sorted_ids, idx])
+        return WarpNearestIndex(self, dst_d).query_device(src_d)
 
     def cross_covariance(self, source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None):
         wp = self.wp
@@ -270,3 +213,89 @@ class WarpBackend:
                      [s_d, t_d, w_d, wp.vec3d(*cs), wp.vec3d(*ct), n, part])
         h = part.numpy().sum(0).reshape(3, 3)
         return cs, ct, h, wsum
+
+
+class WarpNearestIndex:
+    """A target point set on the device for repeated nearest-neighbour queries (an ICP's
+    rounds): uploaded, bounded and shifted once; its grid built at the first query that
+    needs one. `query` gives what `nearest_neighbors(source, target)` gives."""
+
+    def __init__(self, backend: WarpBackend, dst_d):
+        wp = backend.wp
+        self.be, self.dst_d, self.n = backend, dst_d, dst_d.shape[0]
+        lo, hi = backend._bounds(dst_d)
+        self.centre = 0.5 * (lo + hi)
+        self.origin, self.extent = lo - self.centre, hi - lo
+        self.dst32 = wp.empty(self.n, dtype=wp.vec3, device=backend.device)
+        backend._launch(backend._k_icp.shift_to_float32, self.n, [dst_d, wp.vec3d(*self.centre), self.dst32])
+        self.grid = None  # (h, dims, starts, sorted points, sorted ids)
+        self._counts = None  # per-cell counts, then the scatter's cursors
+
+    def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        src = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
+        if len(src) == 0:
+            return np.zeros(0, np.int32), np.zeros(0)
+        if not np.isfinite(src).all():
+            raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
+        with self.be._staging_lock:  # the staging buffers are reused once the results are back
+            idx, dist = self.query_device(self.be._upload_vec3d(src, "source"))
+            return idx.numpy(), dist.numpy()
+
+    def query_device(self, src_d):
+        be, wp, k = self.be, self.be.wp, self.be._k_icp
+        ns = src_d.shape[0]
+        src32 = wp.empty(ns, dtype=wp.vec3, device=be.device)
+        be._launch(k.shift_to_float32, ns, [src_d, wp.vec3d(*self.centre), src32])
+        idx = wp.empty(ns, dtype=wp.int32, device=be.device)
+        if ns * self.n <= _BRUTE_PAIRS[be.kind] or self.n <= 64:
+            be._launch(k.brute_query, ns, [src32, self.dst32, idx])
+        else:
+            if self.grid is None:
+                self.grid = self._build_grid()
+            h, dims, starts, sorted_points, sorted_ids = self.grid
+            _, sorted_queries, query_ids = self._sort_into_cells(src32, h)
+            be._launch(k.grid_query, ns, [sorted_queries, query_ids, wp.vec3(*self.origin), float(h), 1.0 / h, dims,
+                                          starts, sorted_points, sorted_ids, idx])
+        dist = wp.empty(ns, dtype=wp.float64, device=be.device)
+        be._launch(k.exact_distance, ns, [src_d, self.dst_d, idx, dist])
+        return idx, dist
+
+    def _count(self, points, h: float, occupied=None) -> int:
+        be, wp = self.be, self.be.wp
+        dims = _prep.grid_dims(self.extent, h)
+        cells = int(np.prod(dims))
+        if self._counts is None or self._counts.shape[0] < cells + 1:
+            self._counts = wp.zeros(cells + 1, dtype=wp.int32, device=be.device)
+        else:
+            self._counts.zero_()
+        if occupied is None:
+            occupied = wp.zeros(1, dtype=wp.int32, device=be.device)
+        be._launch(be._k_icp.grid_count, points.shape[0],
+                   [points, wp.vec3(*self.origin), 1.0 / h, wp.vec3i(*dims), self._counts, occupied])
+        return cells
+
+    def _sort_into_cells(self, points, h: float):
+        be, wp = self.be, self.be.wp
+        cells = self._count(points, h)
+        dims = wp.vec3i(*_prep.grid_dims(self.extent, h))
+        starts = wp.empty(cells + 1, dtype=wp.int32, device=be.device)
+        wp.utils.array_scan(self._counts[: cells + 1], starts, inclusive=False)
+        self._counts.zero_()
+        sorted_points = wp.empty(points.shape[0], dtype=wp.vec3, device=be.device)
+        sorted_ids = wp.empty(points.shape[0], dtype=wp.int32, device=be.device)
+        be._launch(be._k_icp.grid_scatter, points.shape[0], [points, wp.vec3(*self.origin), 1.0 / h, dims, starts,
+                                                             self._counts, sorted_points, sorted_ids])
+        return starts, sorted_points, sorted_ids
+
+    def _build_grid(self):
+        wp = self.be.wp
+        occupied = wp.zeros(1, dtype=wp.int32, device=self.be.device)
+
+        def occupied_at(h: float) -> int:
+            occupied.zero_()
+            self._count(self.dst32, h, occupied)
+            return int(occupied.numpy()[0])
+
+        h = _prep.choose_cell_size(self.extent, self.n, occupied_at)
+        starts, sorted_points, sorted_ids = self._sort_into_cells(self.dst32, h)
+        return h, wp.vec3i(*_prep.grid_dims(self.extent, h)), starts, sorted_points, sorted_ids
