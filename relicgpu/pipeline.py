@@ -5,6 +5,7 @@ match_pair: LCS coarse match per contour pair -> RANSAC poses -> ICP -> verify
 """
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass, field
 
@@ -169,24 +170,26 @@ def ppf_points(sample: SurfaceSample, n: int) -> tuple[np.ndarray, np.ndarray]:
     return sample.fracture[idx], normals[idx]
 
 
-_PPF_TABLES: dict = {}  # id(sample) -> (sample, settings, table): a fragment meets many partners
+_PPF_TABLES: dict = {}  # (points digest, settings) -> table: a fragment meets many partners
 
 
 def _ppf_table(sample: SurfaceSample, params: Params, scale: float, role: str) -> PairTable:
     """The point-pair table of a fragment's fracture sample, as model (a) or as scene (b: normals
-    flipped, every third point a reference), built once per fragment and kept for a few."""
-    settings = (role, params.ppf_points, params.ppf_distance_step * scale, params.ppf_angle_step_deg)
-    hit = _PPF_TABLES.get((id(sample), role))
-    if hit is not None and hit[0] is sample and hit[1] == settings:
-        return hit[2]
+    flipped, every third point a reference), built once per fragment and kept for a few. Keyed by
+    content, not identity: an engine's worker gets a fresh copy of a fragment with every job."""
     points, normals = ppf_points(sample, params.ppf_points)
-    if role == "model":
-        table = pair_table(points, normals, settings[2], params.ppf_angle_step_deg)
-    else:
-        table = pair_table(points, -normals, settings[2], params.ppf_angle_step_deg, reference_stride=3, sort=False)
-    while len(_PPF_TABLES) >= 12:
-        _PPF_TABLES.pop(next(iter(_PPF_TABLES)))
-    _PPF_TABLES[(id(sample), role)] = (sample, settings, table)
+    key = (hashlib.blake2b(points.tobytes() + normals.tobytes(), digest_size=16).digest(),
+           role, params.ppf_points, params.ppf_distance_step * scale, params.ppf_angle_step_deg)
+    table = _PPF_TABLES.pop(key, None)  # re-inserted last: the least recently used goes first
+    if table is None:
+        step = params.ppf_distance_step * scale
+        if role == "model":
+            table = pair_table(points, normals, step, params.ppf_angle_step_deg)
+        else:
+            table = pair_table(points, -normals, step, params.ppf_angle_step_deg, reference_stride=3, sort=False)
+        while len(_PPF_TABLES) >= 12:
+            _PPF_TABLES.pop(next(iter(_PPF_TABLES)))
+    _PPF_TABLES[key] = table
     return table
 
 
