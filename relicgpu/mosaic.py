@@ -194,6 +194,8 @@ class PairMatch:
     fcm_centres: np.ndarray        # (3,) high, medium, low
     fcm_iterations: int
     margin: float = np.inf         # correlation over that of the best placement more than distinct_px away
+    entropy_point: np.ndarray = None  # (2,) where the entropy matching put the feature centre, before refinement
+    entropy_rank: int = 0          # 0: the entropy match with the smallest coarse T was accepted; k: the k-th next
     timings: dict = field(default_factory=dict)
 
 
@@ -933,6 +935,7 @@ class Placement:
     region_index: int
     region: FeatureRegion
     match: EntropyMatch
+    rank: int               # 0: the region's entropy match with the smallest coarse T; k: the k-th next minimum
     right_point: np.ndarray
     angle: float
     correlation: float      # whole-overlap band-passed correlation
@@ -953,7 +956,8 @@ def _decide(placements: list, p: MosaicParams, final: bool):
     """The best refined placement and its margin over every other placement more than
     `distinct_px` away (its refined correlation, or the raw one when not refined), when it
     is accepted: correlation >= min_correlation, margin >= min_margin and, before the last
-    region (`final` False), `votes` feature regions refined onto it. Else (None, margin)."""
+    region (`final` False), `votes` feature regions refined onto it. Else (None, margin).
+    Of the placements refined to within a pixel of the best, the earliest region's is returned."""
     refined = [h for h in placements if h.refined and h.correlation > -1.0]
     if not refined:
         return None, 0.0
@@ -963,7 +967,12 @@ def _decide(placements: list, p: MosaicParams, final: bool):
     margin = best.correlation - max(rivals, default=-1.0)
     support = len({h.region_index for h in near if h.refined})
     ok = best.correlation >= p.min_correlation and margin >= p.min_margin and (final or support >= p.votes)
-    return (best if ok else None), margin
+    if not ok:
+        return None, margin
+    # regions that refined onto the same placement (within a pixel) agree: report the earliest of them,
+    # the paper's feature region when it is one
+    same = [h for h in refined if _placement_distance(best, h) <= 1.0]
+    return min(same, key=lambda h: (h.region_index, -h.correlation)), margin
 
 
 def _block_mean(gray: np.ndarray, factor: int) -> np.ndarray:
@@ -1015,9 +1024,9 @@ def register_pair(left, right, params: MosaicParams | None = None, backend="nump
         region = regions[k]
         em = match_entropy(pl, pr, region, p, backend, names, hmap, hmap_coarse=hmap_coarse)
         tv = time.perf_counter()
-        found = [Placement(k, region, m, np.array([m.row, m.col]), m.angle,
+        found = [Placement(k, region, m, j, np.array([m.row, m.col]), m.angle,
                            overlap_correlation(pl, pr, region.centre, (m.row, m.col), m.angle, p))
-                 for m in [em] + em.alternatives]
+                 for j, m in enumerate([em] + em.alternatives)]
         found.sort(key=lambda h: -h.correlation)
         for h in found[:p.refine_count]:
             if h.correlation >= p.refine_floor:
@@ -1041,6 +1050,7 @@ def register_pair(left, right, params: MosaicParams | None = None, backend="nump
     timings["match"] = time.perf_counter() - t
     region, em, corr = chosen.region, chosen.match, chosen.correlation
     right_point, angle = chosen.right_point, chosen.angle
+    entropy_point = f * np.array([em.row, em.col]) + (f - 1) / 2.0
     if f > 1:  # refine at full resolution around the scaled-up match, on crops around both areas
         t = time.perf_counter()
         width = f * region.width
@@ -1066,7 +1076,7 @@ def register_pair(left, right, params: MosaicParams | None = None, backend="nump
     timings["total"] = time.perf_counter() - t0
     return PairMatch(left_point, right_point, angle, left_point - right_point, region.width, em.cost, corr,
                      em.distinctness, chosen.region_index, region.centres, region.fcm.iterations, margin=margin,
-                     timings=timings)
+                     entropy_point=entropy_point, entropy_rank=chosen.rank, timings=timings)
 
 
 # --- stitching -------------------------------------------------------------------

@@ -410,7 +410,7 @@ def test_one_variance_floor_from_the_given_noise():
 def _placement(centre, right_point, corr, k=0, refined=True):
     region = M.FeatureRegion(centre, 42, None, None, None)
     m = M.EntropyMatch(right_point[0], right_point[1], 0.0, 1.0, 1.0)
-    return M.Placement(k, region, m, np.array(right_point, float), 0.0, corr, refined)
+    return M.Placement(k, region, m, 0, np.array(right_point, float), 0.0, corr, refined)
 
 
 def test_decide_needs_a_margin_and_votes():
@@ -426,6 +426,8 @@ def test_decide_needs_a_margin_and_votes():
     assert best is a and margin == pytest.approx(0.95 + 1.0)
     best, margin = M._decide([a, same, near], p, final=False)
     assert best is a  # two regions refined onto it
+    better = _placement((200, 300), (190.2, 100.0), 0.97, k=1)  # within a pixel of a, correlating higher
+    assert M._decide([a, better], p, final=False)[0] is a  # the earlier region's (the paper's) is reported
     best, margin = M._decide([a, same, rival], p, final=True)
     assert best is None and margin == pytest.approx(0.03)  # a rival within min_margin
     low = _placement((100, 300), (90, 100), 0.4, k=0)
