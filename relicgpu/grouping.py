@@ -6,14 +6,17 @@ within groups. Two ways:
 
 - unsupervised, `group(fragments)`: per-fragment descriptors that survive
   breakage (below); per pair of fragments and feature, how many within-object
-  spreads apart they are (z, capped; FEATURE_SCALES), plus whether the two have
-  a fracture patch of one size and outline (the two sides of one cut do); a
-  fixed logistic model over those (PAIR_WEIGHTS, fitted once on synthetic heaps
-  that are not the benchmark's, see `fit_pair_model`) gives the odds that the two
-  come from one object; average-linkage agglomerative clustering on 1 - p, cut
-  where the mean p between two clusters falls below 0.7, so the number of groups
-  is found, not given (or given, or another cut); fragments left alone or in
-  pairs are then clustered among themselves at a looser cut.
+  spreads apart they are (z, capped; FEATURE_SCALES), how far apart their
+  quartile intervals of curvature, thickness and shape lie (0 where they
+  overlap: a varied object's pieces overlap somewhere), plus whether the two
+  have a fracture patch of one size and outline (the two sides of one cut do);
+  a fixed logistic model over those, piecewise linear in each z (PAIR_WEIGHTS,
+  fitted once on synthetic heaps that are not the benchmark's, see
+  `fit_pair_model`) gives the odds that the two come from one object;
+  average-linkage agglomerative clustering on 1 - p, cut where the mean p
+  between two clusters falls below 0.6, so the number of groups is found, not
+  given (or given, or another cut); fragments left alone or in small groups are
+  then clustered among themselves at a looser cut.
 - supervised, `relicgpu train-classifier LABELS.csv`: a small PointNet over
   surface points (position in the fragment's principal frame, normal, fracture
   flag) joined with the descriptors, trained with torch; `relicgpu group
@@ -22,10 +25,13 @@ within groups. Two ways:
 Descriptors (lengths in units of a reference length: the heap's median fragment
 size unsupervised, the training set's in a classifier), all of which a piece
 keeps from its object whatever the cuts were:
-  original surface: curvature distribution (quantiles of the larger and smaller
-    normal curvature over its edges, signed: convex > 0), wall thickness (rays cast
-    inward along the normals to the first surface hit), roughness (normal
-    perturbation at triangle scale, from the segmentation);
+  original surface: curvature distribution (principal curvatures from a quadric
+    fitted over a few edges' radius at points drawn by area, signed: convex > 0;
+    their quartiles, spread, |shape index| and curvedness), wall thickness (rays
+    cast inward along the normals that meet the original surface again; the
+    chord to the first face of any kind, and the share of rays that meet a
+    wall: a solid's pieces end on their cuts), roughness (normal perturbation at
+    triangle scale, from the segmentation);
   fracture surfaces: roughness (normal perturbation; RMS height about each
     patch's plane), share of the area, relief spectrum (RMS height about the
     local plane within a radius, interpolated to radii fixed within the heap), and
@@ -55,41 +61,72 @@ DESCRIPTOR_NAMES = (
     "orig_roughness", "frac_roughness", "frac_height", "frac_share",
 )
 THICKNESS_RAYS = 160
+CURVATURE_EDGES = 4.0  # quadric fit radius, x the fragment's median edge length
+CURVATURE_SAMPLES = 300
+MIN_WALL_HITS = 8  # rays reaching the far side of the original surface, else no thickness
 # The features compared between two fragments (Descriptor.features), all unit-free: lengths as
 # log(x / L), curvatures as asinh(k * L), L the heap's median fragment size. "relief_R" is the
-# fracture relief at radius R x L (spectrum_at).
+# fracture relief at radius R x L (spectrum_at); "chord" the inward ray length to the first face of
+# any kind (a solid's pieces have no wall: their rays end on a cut); "wall_share" the share of rays
+# that end on the original surface again; "kmax_spread" and "curvedness_spread" the interquartile
+# ranges of asinh(kmax L) and asinh(curvedness L) over the piece (how varied its surface is: a
+# torso's piece spans a range, a capsule's is one radius); "shape_index_q50" the median |shape
+# index| (1 sphere, 0.5 cylinder, 0 saddle) where the curvature radius is below L.
 RELIEF_RADII = (0.02, 0.04, 0.08)
 FEATURE_NAMES = ("log_thickness_q25", "log_thickness_q50", "log_thickness_q75", "kmax_q25", "kmax_q50",
                  "kmin_q50", "orig_roughness", "frac_roughness", "frac_height", "frac_share",
-                 *(f"relief_{r:g}" for r in RELIEF_RADII))
+                 *(f"relief_{r:g}" for r in RELIEF_RADII), "log_chord_q25", "log_chord_q50", "log_chord_q75",
+                 "wall_share", "kmax_spread", "curvedness_spread", "shape_index_q50", "curvedness_q50")
+# Per quantity, the quartile interval [q25, q75] of each piece (Descriptor.intervals); the pair
+# feature is the gap between the two pieces' intervals (0 where they overlap) over GAP_SCALES:
+# pieces of one varied object overlap somewhere even when their medians lie apart. Scales set by
+# hand once (the typical quartile width of a uniform object's pieces), not fitted.
+GAP_NAMES = ("kmax", "kmin", "log_thickness", "log_chord", "shape_index", "curvedness")
+GAP_SCALES = (0.02, 0.05, 0.02, 0.05, 0.05, 0.02)
+SHAPE_INDEX_MIN_CURVEDNESS = 1.0  # x 1/L: flatter points have no meaningful shape index
 # Per feature, how far apart two fragments of one object typically are: 1.4826 x the median
 # absolute deviation from their object's median, pooled over the objects of synthetic heaps
 # (`scripts/bench_group.py --fit 10 ... 29`). A pair's z is its difference over this. Objects that
 # are alike all over (a tube, a bowl) set these; pieces of a varied one (a torso's chest and
-# limbs) lie many scales apart, which the leftover stage of `cluster` is for.
-FEATURE_SCALES = (0.0372, 0.0066, 0.0031, 0.0176, 0.0089, 0.0853, 0.0518, 0.0381, 0.2396, 0.0739, 0.1616, 0.0758,
-                  0.0763)
+# limbs) lie many scales apart, which the interval gaps, the spreads and the leftover stage of
+# `cluster` are for.
+# Floored at SCALE_FLOOR: synthetic walls are exact, and a 1% difference (in log length or
+# asinh curvature) is below what a scan resolves.
+SCALE_FLOOR = 0.01
+FEATURE_SCALES = (0.0100, 0.0100, 0.0100, 0.0100, 0.0100, 0.0287, 0.0508, 0.0371, 0.2386, 0.0729, 0.1606, 0.0748,
+                  0.0753, 0.0362, 0.0100, 0.0100, 0.0649, 0.0134, 0.0436, 0.0100, 0.0100)
 COLOUR_SCALE = 0.02
+COLOUR_WEIGHT = -1.0  # logit per unit of the mean colour z (not fitted: no coloured training heaps)
 Z_CAP = 8.0  # beyond this a feature says "different" no louder
 Z_MISSING = 1.0  # z of a feature one of the two could not measure
+# Each capped z enters the pair model as z, max(z - 1, 0), max(z - 3, 0): a piecewise-linear
+# response per feature, so that one feature far apart (a sphere's shape index against a
+# cylinder's) can outweigh many that agree.
+Z_KNOTS = (1.0, 3.0)
 # Fracture patches of two fragments "match" when area and both in-plane extents agree within
 # exp(m); the pair feature is max(0, log(PATCH_TOLERANCE / m)) for the best-matching patches.
 PATCH_TOLERANCE = 0.3
-# Logistic model of "one object" over the capped z of FEATURE_NAMES, then the patch match, last
-# the intercept; class-balanced, L2 1e-2, fitted by `scripts/bench_group.py --fit 10 ... 29` on
-# heaps of synthetic mixture seeds 10-29, scanned at one resolution (the benchmark scores seeds
-# 0-4). Colour, when present, enters as the mean z of its channels with the thickness-median
-# weight (not fitted: no coloured training heaps). Both depend on relicgpu.segment (which faces
-# are fracture): refit them when it changes. With the segmentation of commit 6b6777c, two-fold on
-# seeds 10-29: mean ARI 0.920, min 0.716.
-PAIR_WEIGHTS = (0.001, -0.361, -0.393, -0.243, -0.288, 0.094, -0.359, -0.254, -0.195, -0.332, 0.194, -0.238,
-                0.018, 3.872, 11.450)
+# Logistic model of "one object" over pair_inputs: per knot block (z, then max(z - t, 0) for t in
+# Z_KNOTS) the z of FEATURE_NAMES then of the GAP_NAMES gaps, then the patch match, last the
+# intercept; class-balanced, L2 1.0, fitted by `scripts/bench_group.py --fit 10 ... 29` on heaps of
+# synthetic mixture seeds 10-29, scanned at one resolution (the benchmark scores seeds 0-4).
+# Depends on relicgpu.segment (which faces are fracture): refit when it changes. Two-fold on
+# seeds 10-29 (fitted on one half, scored on the other): mean ARI 0.973, min 0.786.
+PAIR_WEIGHTS = (-0.412, 0.427, 1.036, 0.323, 0.102, 1.670, -0.166, -0.175, -0.045, -0.100, -0.408, -0.207, 0.626,
+                1.083, 0.235, 0.721, 0.188, 0.346, 0.939, 0.868, 0.066, -0.819, 1.395, -2.537, -1.595, -1.284, -1.913,
+                -0.097, -0.792, -0.057, -2.657, -0.552, -1.256, 0.225, -0.028, -0.345, 0.164, 0.884, -0.089, -0.821,
+                -1.551, -0.407, -1.074, -0.164, -0.377, -0.133, -0.002, -0.481, 1.283, -1.217, 2.841, 2.043, 0.874,
+                2.003, 0.154, 0.439, -1.341, 2.544, 0.367, -0.626, -0.375, 0.038, 0.289, -1.039, -0.465, 0.273, 0.352,
+                0.862, 0.182, 0.269, -0.713, -0.043, -1.389, -1.014, 0.563, -0.774, -0.223, -0.504, -0.667, 0.176,
+                -0.200, 1.917, 7.310)
 # Clusters merge while the mean probability of one object between them is above 1 - LINK_CUT
 # (average linkage). Fragments left in groups of at most LEFTOVER_SIZE are then clustered among
 # themselves at LEFTOVER_CUT: pieces unlike the rest of their own object (a torso's limb and its
 # chest) find each other there rather than staying alone. Chosen on seeds 10-29 (segmentation before
 # 6b6777c), models fitted on one half and scored on the other: mean ARI 0.934 (min 0.655) at
 # 0.4 / 3 / 0.9; 0.924 at 0.3 / 3; 0.914 at 0.4 / 2; 0.877 with no leftover stage (0.3).
+# Rechecked with the interval gaps and knots (two-fold, L2 1e-2): 0.969 (min 0.821) at 0.4 / 3 / 0.9,
+# 0.975 at 0.4 / 4, 0.964 at 0.3 / 3, 0.966 (min 0.677) at 0.5 / 3.
 LINK_CUT = 0.4
 LEFTOVER_SIZE = 3
 LEFTOVER_CUT = 0.9
@@ -115,29 +152,66 @@ class Descriptor:
     frac_spectrum: np.ndarray | None = None  # (len(SPECTRUM_RADII),) RMS height of the fracture surface about
     #   its local plane within each radius SPECTRUM_RADII x size, length; nan where unmeasured
     patches: np.ndarray | None = None  # (P, 3) fracture patches, largest first: area, the two in-plane extents
+    chord: np.ndarray | None = None  # (3,) quantiles 25/50/75 of the inward ray length to the first face of any kind
+    wall_share: float = float("nan")  # share of inward rays whose first hit is the original surface (a wall)
+    curvatures: np.ndarray | None = None  # (m, 2) principal curvatures (kmax, kmin) at points drawn by area
 
     def vector(self, ref_length: float) -> np.ndarray:
-        """Unit-free feature vector: curvatures as asinh(k * L), lengths as log(x / L)."""
+        """Unit-free feature vector for the classifier: curvatures as asinh(k * L), lengths as
+        log(x / L) (an unmeasured wall thickness as the fragment's size), then the shape measures
+        of FEATURE_NAMES' tail."""
         L = float(ref_length)
         thick = np.log(np.maximum(np.nan_to_num(self.thickness, nan=self.size), 1e-6 * L) / L)
+        chord = np.log(np.maximum(np.nan_to_num(self.chord, nan=self.size), 1e-6 * L) / L)
+        si, cv = self.shape_measures(L)
         v = [np.arcsinh(self.kmax * L), np.arcsinh(self.kmin * L), thick,
              [np.log1p(self.orig_roughness), np.log1p(self.frac_roughness),
-              np.log(max(self.frac_height, 1e-6 * L) / L), self.frac_share]]
+              np.log(max(self.frac_height, 1e-6 * L) / L), self.frac_share],
+             chord, [np.nan_to_num(self.wall_share, nan=0.0)], np.nan_to_num(si, nan=0.0), cv]
         if self.colour is not None:
             v.append(self.colour)
         return np.concatenate([np.asarray(x, np.float64).ravel() for x in v])
+
+    def shape_measures(self, ref_length: float) -> tuple[np.ndarray, np.ndarray]:
+        """Quartiles 25/50/75 of |shape index| (over points whose curvedness is at least
+        SHAPE_INDEX_MIN_CURVEDNESS / L; nan when fewer than 10) and of asinh(curvedness L)."""
+        L = float(ref_length)
+        k = self.curvatures if self.curvatures is not None else np.stack([self.kmax, self.kmin], axis=1)
+        k1, k2 = k[:, 0], k[:, 1]
+        curvedness = np.sqrt(0.5 * (k1 * k1 + k2 * k2))
+        q = (0.25, 0.5, 0.75)
+        curved = curvedness * L >= SHAPE_INDEX_MIN_CURVEDNESS
+        si = np.abs(2 / np.pi * np.arctan2(k1 + k2, k1 - k2))
+        si_q = np.quantile(si[curved], q) if curved.sum() >= 10 else np.full(3, np.nan)
+        return si_q, np.quantile(np.arcsinh(curvedness * L), q)
 
     def features(self, ref_length: float) -> np.ndarray:
         """The unit-free features of FEATURE_NAMES (nan where unmeasured), then the mean colour
         when the fragment has one."""
         L = float(ref_length)
-        x = self.vector(L)
-        relief = [spectrum_at(self, r * L) for r in RELIEF_RADII]
-        values = [*x[6:9], x[0], x[1], x[4], x[9], x[10], x[11], x[12],
-                  *(np.log(r / L) if np.isfinite(r) and r > 0 else np.nan for r in relief)]
+        log = lambda x: np.log(x / L) if np.isfinite(x) and x > 0 else np.nan
+        kmax, kmin = np.arcsinh(self.kmax * L), np.arcsinh(self.kmin * L)
+        si, cv = self.shape_measures(L)
+        chord = self.chord if self.chord is not None else np.full(3, np.nan)
+        values = [*(log(t) for t in self.thickness), kmax[0], kmax[1], kmin[1],
+                  np.log1p(self.orig_roughness), np.log1p(self.frac_roughness),
+                  np.log(max(self.frac_height, 1e-6 * L) / L), self.frac_share,
+                  *(log(spectrum_at(self, r * L)) for r in RELIEF_RADII),
+                  *(log(c) for c in chord), self.wall_share,
+                  np.log(kmax[2] - kmax[0] + 0.02), np.log(cv[2] - cv[0] + 0.02), si[1], cv[1]]
         if self.colour is not None:
             values += list(self.colour[:3])
         return np.array(values, np.float64)
+
+    def intervals(self, ref_length: float) -> np.ndarray:
+        """(len(GAP_NAMES), 2) the quartile interval [q25, q75] of each GAP_NAMES quantity,
+        unit-free as in features (nan where unmeasured)."""
+        L = float(ref_length)
+        log = lambda x: np.log(np.where(np.asarray(x) > 0, x, np.nan) / L)
+        si, cv = self.shape_measures(L)
+        chord = self.chord if self.chord is not None else np.full(3, np.nan)
+        rows = [np.arcsinh(self.kmax * L), np.arcsinh(self.kmin * L), log(self.thickness), log(chord), si, cv]
+        return np.array([[r[0], r[2]] for r in rows], np.float64)
 
 
 @dataclass(frozen=True)
@@ -184,12 +258,13 @@ def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None)
         orig = np.ones(len(f), bool)
 
     vn = vertex_normals(v, f, fn, areas)
-    kmax, kmin, vweight = _principal_curvatures(v, f, vn, orig, areas)
+    edges = np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2)
+    kmax, kmin = _quadric_curvatures(v, f, vn, orig, areas, CURVATURE_EDGES * float(np.median(edges)))
     q = (0.25, 0.5, 0.75)
-    kmax_q = _wquantiles(kmax, vweight, q)
-    kmin_q = _wquantiles(kmin, vweight, q)
+    kmax_q = np.quantile(kmax, q)
+    kmin_q = np.quantile(kmin, q)
 
-    thickness = _wall_thickness(v, f, fn, areas, orig)
+    thickness, chord, wall_share = _wall_thickness(v, f, fn, areas, orig)
     orig_rough = float(np.average(seg.face_roughness[orig], weights=areas[orig] + 1e-300))
     if frac.any():
         frac_rough = float(np.average(seg.face_roughness[frac], weights=areas[frac] + 1e-300))
@@ -207,7 +282,7 @@ def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None)
     patches = _fracture_patches(v, f, seg.face_region, frac, areas)
     return Descriptor(fragment.name, kmax_q, kmin_q, thickness, orig_rough, frac_rough, frac_height,
                       float(areas[frac].sum() / total) if total > 0 else 0.0, size, colour,
-                      spectrum, patches)
+                      spectrum, patches, chord, wall_share, np.stack([kmax, kmin], axis=1))
 
 
 def _fracture_spectrum(v, f, frac, areas, size, radii=None, samples=SPECTRUM_SAMPLES):
@@ -277,48 +352,61 @@ def _fracture_patches(v, f, face_region, frac, areas, top=PATCHES):
     return np.array(rows[:top], np.float64).reshape(-1, 3)
 
 
-def _principal_curvatures(v, f, vn, face_mask, areas):
-    """Per vertex of the masked faces: the largest and smallest normal curvature over its
-    edges, k = (n_j - n_i).(p_j - p_i) / |p_j - p_i|^2 (convex > 0), and the vertex's area.
+def _quadric_curvatures(v, f, vn, face_mask, areas, radius, samples=CURVATURE_SAMPLES):
+    """Principal curvatures (convex > 0) at vertices of the masked faces drawn by area: a quadric
+    height field fitted over the masked surface's vertices within `radius` whose normals agree
+    with the centre's (not the far side of a thin wall); (kmax, kmin), each (m,).
 
-    Edges where a vertex touches a face outside the mask (the crease to a fracture) are
-    left out: the normal there averages two surfaces."""
+    The fit over a few edges' radius averages out the scan noise that a per-edge estimate
+    amplifies differently on differently tessellated parts of one object."""
+    from scipy.spatial import cKDTree
+
     sub = f[face_mask]
-    touch_other = np.zeros(len(v), bool)
+    touch_other = np.zeros(len(v), bool)  # the crease to a fracture: its normals average two surfaces
     touch_other[f[~face_mask].ravel()] = True
-    e = np.concatenate([sub[:, [0, 1]], sub[:, [1, 2]], sub[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
-    e = e[~(touch_other[e[:, 0]] | touch_other[e[:, 1]])]
-    d = v[e[:, 1]] - v[e[:, 0]]
-    k = np.einsum("ij,ij->i", vn[e[:, 1]] - vn[e[:, 0]], d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300)
-    nv = len(v)
-    kmax = np.full(nv, -np.inf)
-    kmin = np.full(nv, np.inf)
-    for col in (0, 1):
-        np.maximum.at(kmax, e[:, col], k)
-        np.minimum.at(kmin, e[:, col], k)
-    weight = np.zeros(nv)
+    ids = np.unique(sub)
+    if (~touch_other[ids]).sum() >= 8:
+        ids = ids[~touch_other[ids]]
+    weight = np.zeros(len(v))
     for c in range(3):
         np.add.at(weight, sub[:, c], areas[face_mask] / 3)
-    ok = np.isfinite(kmax) & np.isfinite(kmin) & (weight > 0)
-    if not ok.any():
-        return np.zeros(1), np.zeros(1), np.ones(1)
-    return kmax[ok], kmin[ok], weight[ok]
-
-
-def _wquantiles(x, w, qs):
-    order = np.argsort(x)
-    cum = np.cumsum(w[order])
-    cum = cum / cum[-1]
-    return np.array([x[order][min(np.searchsorted(cum, q), len(x) - 1)] for q in qs])
+    w = weight[ids]
+    if len(ids) < 8 or w.sum() <= 0:
+        return np.zeros(1), np.zeros(1)
+    rng = np.random.default_rng(len(f))
+    pick = rng.choice(ids, min(samples, len(ids)), replace=False, p=w / w.sum())
+    pts, nrm = v[ids], vn[ids]
+    tree = cKDTree(pts)
+    kmax, kmin = [], []
+    for c, hood in zip(pick, tree.query_ball_point(v[pick], radius)):
+        n = vn[c]
+        hood = np.asarray(hood)
+        hood = hood[nrm[hood] @ n > 0.5]
+        if len(hood) < 8:
+            continue
+        t1 = np.cross(n, (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0))
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(n, t1)
+        d = pts[hood] - v[c]
+        x, y, h = d @ t1, d @ t2, d @ n
+        a = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
+        coef = np.linalg.lstsq(a, h, rcond=None)[0]
+        k = -np.linalg.eigvalsh(np.array([[2 * coef[0], coef[1]], [coef[1], 2 * coef[2]]]))
+        kmax.append(k.max())
+        kmin.append(k.min())
+    if not kmax:
+        return np.zeros(1), np.zeros(1)
+    return np.array(kmax), np.array(kmin)
 
 
 def _wall_thickness(v, f, fn, areas, orig, rays=THICKNESS_RAYS):
-    """Quantiles 25/50/75 of the distance from original-surface face centres inward along
-    the negative normal to the first other surface hit (Moller-Trumbore on every face)."""
+    """Rays from original-surface face centres inward along the negative normal (Moller-Trumbore
+    on every face): quantiles 25/50/75 of the wall thickness (over the rays whose first hit is
+    the original surface again; nan when fewer than MIN_WALL_HITS are), the same of the length
+    to the first hit of any kind (the chord), and the share of rays that met a wall."""
     cand = np.flatnonzero(orig)
     if len(cand) == 0:
-        return np.full(3, np.nan)
+        return np.full(3, np.nan), np.full(3, np.nan), float("nan")
     rng = np.random.default_rng(len(f))
     pick = rng.choice(cand, min(rays, len(cand)), replace=False, p=areas[cand] / areas[cand].sum())
     tri = v[f]
@@ -327,6 +415,7 @@ def _wall_thickness(v, f, fn, areas, orig, rays=THICKNESS_RAYS):
     e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     eps = 1e-9 * max(1.0, float(np.abs(v).max()))
     hits = np.full(len(pick), np.nan)
+    wall = np.zeros(len(pick), bool)
     chunk = max(1, 2_000_000 // len(f))
     for s in range(0, len(pick), chunk):
         o, d = origin[s:s + chunk, None, :], direction[s:s + chunk, None, :]
@@ -341,12 +430,16 @@ def _wall_thickness(v, f, fn, areas, orig, rays=THICKNESS_RAYS):
         ok = (u >= 0) & (w >= 0) & (u + w <= 1) & (t > eps)
         ok[np.arange(len(o)), pick[s:s + chunk]] = False  # the face the ray starts on
         t = np.where(ok, t, np.inf)
-        best = t.min(axis=1)
+        first = t.argmin(axis=1)
+        best = t[np.arange(len(o)), first]
+        # a wall is what a ray crosses to the original surface's far side; a fracture face first
+        # means the piece was cut there (a solid's chord ends where the cut fell)
         hits[s:s + chunk] = np.where(np.isfinite(best), best, np.nan)
-    good = np.isfinite(hits)
-    if not good.any():
-        return np.full(3, np.nan)
-    return np.quantile(hits[good], (0.25, 0.5, 0.75))
+        wall[s:s + chunk] = np.isfinite(best) & orig[first]
+    q = (0.25, 0.5, 0.75)
+    chord = np.quantile(hits[np.isfinite(hits)], q) if np.isfinite(hits).any() else np.full(3, np.nan)
+    thickness = np.quantile(hits[wall], q) if wall.sum() >= MIN_WALL_HITS else np.full(3, np.nan)
+    return thickness, chord, float(wall.mean())
 
 
 def _patch_height(v, f, face_region, frac, areas):
@@ -441,17 +534,40 @@ def patch_match(descriptors: list[Descriptor]) -> np.ndarray:
     return np.log(np.maximum(PATCH_TOLERANCE / np.maximum(m, 1e-2), 1.0))
 
 
-def pair_features(descriptors: list[Descriptor], scales=None) -> np.ndarray:
-    """(n, n, len(FEATURE_NAMES) + 1 [+ 1 with colour]) the pair model's inputs: capped z of each
-    feature, the patch match, and (when every fragment has colour) the mean z of the colour."""
+def interval_gaps(descriptors: list[Descriptor], ref_length: float) -> np.ndarray:
+    """(n, n, len(GAP_NAMES)) the gap between two pieces' quartile intervals, 0 where they overlap
+    (nan where either is unmeasured)."""
+    iv = np.stack([d.intervals(ref_length) for d in descriptors])  # (n, G, 2)
+    lo = np.maximum(iv[:, None, :, 0], iv[None, :, :, 0])
+    hi = np.minimum(iv[:, None, :, 1], iv[None, :, :, 1])
+    return np.maximum(lo - hi, 0.0)
+
+
+def pair_inputs(descriptors: list[Descriptor], scales=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The pair model's inputs without colour (n, n, N_PAIR_INPUTS): the capped z of each
+    FEATURE_NAMES feature and of each GAP_NAMES gap, each expanded at Z_KNOTS, then the patch
+    match; and the mean colour z (n, n) when every fragment has colour (else None)."""
     L = float(np.median([d.size for d in descriptors]))
     values = np.stack([d.features(L) for d in descriptors])
     k = len(FEATURE_NAMES)
     sc = np.asarray(FEATURE_SCALES if scales is None else scales, np.float64)
-    parts = [pair_z(values[:, :k], sc), patch_match(descriptors)[:, :, None]]
+    gaps = interval_gaps(descriptors, L) / np.asarray(GAP_SCALES)
+    z = np.concatenate([pair_z(values[:, :k], sc), np.where(np.isnan(gaps), Z_MISSING, np.minimum(gaps, Z_CAP))],
+                       axis=2)
+    x = np.concatenate([z, *(np.maximum(z - t, 0.0) for t in Z_KNOTS), patch_match(descriptors)[:, :, None]], axis=2)
+    colour = None
     if values.shape[1] > k:
-        parts.append(pair_z(values[:, k:], np.full(values.shape[1] - k, COLOUR_SCALE)).mean(axis=2, keepdims=True))
-    return np.concatenate(parts, axis=2)
+        colour = pair_z(values[:, k:], np.full(values.shape[1] - k, COLOUR_SCALE)).mean(axis=2)
+    return x, colour
+
+
+N_PAIR_INPUTS = (len(FEATURE_NAMES) + len(GAP_NAMES)) * (1 + len(Z_KNOTS)) + 1
+
+
+def pair_features(descriptors: list[Descriptor], scales=None) -> np.ndarray:
+    """(n, n, N_PAIR_INPUTS [+ 1 with colour]): pair_inputs, the colour z last when present."""
+    x, colour = pair_inputs(descriptors, scales)
+    return x if colour is None else np.concatenate([x, colour[:, :, None]], axis=2)
 
 
 def same_object_probability(features: np.ndarray, weights=None) -> np.ndarray:
@@ -460,8 +576,8 @@ def same_object_probability(features: np.ndarray, weights=None) -> np.ndarray:
     w = np.asarray(PAIR_WEIGHTS if weights is None else weights, np.float64)
     k = len(w) - 1
     logit = features[:, :, :k] @ w[:-1] + w[-1]
-    if features.shape[2] > k:  # colour, weighed as the thickness median
-        logit += w[1] * features[:, :, k]
+    if features.shape[2] > k:  # colour
+        logit += COLOUR_WEIGHT * features[:, :, k]
     p = 1.0 / (1.0 + np.exp(-np.clip(logit, -50, 50)))
     np.fill_diagonal(p, 1.0)
     return 0.5 * (p + p.T)
@@ -469,7 +585,7 @@ def same_object_probability(features: np.ndarray, weights=None) -> np.ndarray:
 
 def fit_feature_scales(heaps) -> np.ndarray:
     """FEATURE_SCALES from known mixtures [(descriptors, labels)]: per feature, 1.4826 x the
-    median absolute deviation of fragments from their object's median (floored at 1e-3)."""
+    median absolute deviation of fragments from their object's median, floored at SCALE_FLOOR."""
     res = []
     for desc, labels in heaps:
         L = float(np.median([d.size for d in desc]))
@@ -480,16 +596,17 @@ def fit_feature_scales(heaps) -> np.ndarray:
             med = np.array([np.median(c[np.isfinite(c)]) if np.isfinite(c).any() else np.nan for c in x[m].T])
             res.append(x[m] - med)
     r = np.abs(np.vstack(res))
-    return np.array([1.4826 * np.median(c[np.isfinite(c)]) if np.isfinite(c).any() else 1.0 for c in r.T]) + 1e-3
+    return np.maximum([1.4826 * np.median(c[np.isfinite(c)]) if np.isfinite(c).any() else 1.0 for c in r.T],
+                      SCALE_FLOOR)
 
 
-def fit_pair_model(heaps, scales=None, l2: float = 1e-2, iterations: int = 50) -> np.ndarray:
-    """Class-balanced L2 logistic regression of "same object" over pair_features (without colour).
+def fit_pair_model(heaps, scales=None, l2: float = 1.0, iterations: int = 50) -> np.ndarray:
+    """Class-balanced L2 logistic regression of "same object" over pair_inputs (no colour).
 
     heaps: [(descriptors, labels)] of known mixtures. Returns the weights, intercept last."""
     xs, ys = [], []
     for desc, labels in heaps:
-        feats = pair_features(desc, scales)[:, :, :len(FEATURE_NAMES) + 1]
+        feats, _ = pair_inputs(desc, scales)
         lab = np.asarray(labels)
         iu = np.triu_indices(len(lab), 1)
         xs.append(feats[iu])

@@ -238,8 +238,9 @@ def fit(seeds, edge, cache) -> None:
             sc, wt = fitted(train)
             cross += [ari(d, l, sc, wt) for d, l in test]
     print(f"FEATURE_SCALES = ({', '.join(f'{x:.4f}' for x in scales)})")
-    print(f"PAIR_WEIGHTS = ({', '.join(f'{x:.3f}' for x in w)})  # {', '.join(G.FEATURE_NAMES)}, patch_match, "
-          f"intercept")
+    print(f"PAIR_WEIGHTS = ({', '.join(f'{x:.3f}' for x in w)})")
+    print(f"# per knot block (z, then max(z - t, 0) for t in {G.Z_KNOTS}): {', '.join(G.FEATURE_NAMES)}, gaps of "
+          f"{', '.join(G.GAP_NAMES)}; then patch_match, intercept")
     if cross:
         print(f"two-fold ARI over seeds {list(seeds)}: mean {np.mean(cross):.3f}, min {np.min(cross):.3f} "
               f"({', '.join(f'{a:.3f}' for a in cross)})")
@@ -289,7 +290,8 @@ def main(argv=None) -> int:
     for name, col in (("fracture", 0), ("original", 1)):
         x = np.array([e[col] for e in edges]) / args.edge
         print(f"{name:>8} " + " ".join(f"{q:>6.3f}" for q in np.nanquantile(x, [0, 0.25, 0.5, 0.75, 1.0])))
-    print(f"\nUnsupervised grouping (pair model on feature z and fracture-patch match, average linkage cut at "
+    print(f"\nUnsupervised grouping (pair model on feature z, quartile-interval gaps and fracture-patch match, "
+          f"average linkage cut at "
           f"p = {1 - G.LINK_CUT:.2g}, leftovers at p = {1 - G.LEFTOVER_CUT:.2g})")
     print(f"{'seed':>4} {'objects':>7} {'frags':>5} {'groups':>6} {'ARI':>6} {'synth s':>7} {'group s':>7}")
     for s, no, nf, ng, ari, ts, tg in rows:

@@ -72,13 +72,64 @@ def test_wall_thickness_of_a_tube():
     frag = Fragment("tube", np.asarray(m.vert_properties, float)[:, :3], np.asarray(m.tri_verts, np.int32))
     d = G.describe(frag)
     assert d.thickness == pytest.approx([0.1, 0.1, 0.1], rel=0.02)
+    assert d.chord == pytest.approx(d.thickness) and d.wall_share > 0.9  # every inward ray meets the wall
+
+
+def test_curvature_of_a_cylinder():
+    import trimesh
+    from trimesh.remesh import subdivide_to_size
+
+    c = trimesh.creation.cylinder(radius=1.0, height=3.0, sections=96)
+    v, f = subdivide_to_size(c.vertices, c.faces, max_edge=0.1)
+    d = G.describe(Fragment("cyl", np.asarray(v, float), np.asarray(f, np.int32)))
+    side = d.curvatures[np.abs(d.curvatures[:, 0] - 1.0) < 0.1]
+    assert len(side) > 0.5 * len(d.curvatures)  # the side holds most of the area
+    assert np.abs(side[:, 1]).max() < 0.05  # along the axis: flat
+    si, _ = d.shape_measures(1.0)
+    assert si[1] == pytest.approx(0.5, abs=0.05)  # |shape index| of a cylinder (its rims: 90-degree creases)
+
+
+def test_solid_pieces_have_chords_hollow_ones_walls():
+    """Rays from a solid torso's pieces mostly end on a cut (fracture), a vase's on its inner wall."""
+    share = {}
+    for shape in ("torso", "vase"):
+        r = synth.generate(shape, pieces=6, seed=1, faces=1500, progress=False)
+        d = [G.describe(f) for f in r.fragments]
+        assert all(np.all(np.isfinite(x.chord)) for x in d)
+        share[shape] = np.median([x.wall_share for x in d])
+    assert share["torso"] < 0.4 and share["vase"] > 0.7
+
+
+def test_curvature_of_a_cylinder():
+    import trimesh
+    from trimesh.remesh import subdivide_to_size
+
+    c = trimesh.creation.cylinder(radius=1.0, height=3.0, sections=96)
+    v, f = subdivide_to_size(c.vertices, c.faces, max_edge=0.1)
+    d = G.describe(Fragment("cyl", np.asarray(v, float), np.asarray(f, np.int32)))
+    side = d.curvatures[np.abs(d.curvatures[:, 0] - 1.0) < 0.1]
+    assert len(side) > 0.5 * len(d.curvatures)  # the side holds most of the area
+    assert np.abs(side[:, 1]).max() < 0.05  # along the axis: flat
+    si, _ = d.shape_measures(1.0)
+    assert si[1] == pytest.approx(0.5, abs=0.05)  # |shape index| of a cylinder (its rims: 90-degree creases)
+
+
+def test_solid_piece_has_a_chord_but_no_wall():
+    """A ball cut in half by a rough surface: rays from the dome end on the cut (fracture), not on
+    the original surface again: no wall thickness, a chord, few wall hits."""
+    r = synth.generate("torso", pieces=2, seed=1, faces=3000, progress=False)
+    d = G.describe(r.fragments[0])
+    assert d.wall_share < 0.5
+    assert np.all(np.isfinite(d.chord))
 
 
 def test_curvature_of_a_sphere():
     import trimesh
     ball = trimesh.creation.icosphere(subdivisions=4, radius=2.0)
     d = G.describe(Fragment("ball", np.asarray(ball.vertices, float), np.asarray(ball.faces, np.int32)))
-    assert np.allclose(d.kmax, 0.5, rtol=0.1) and np.allclose(d.kmin, 0.5, rtol=0.1)
+    assert np.allclose(d.kmax, 0.5, rtol=0.05) and np.allclose(d.kmin, 0.5, rtol=0.05)
+    si, cv = d.shape_measures(2.0)
+    assert si == pytest.approx([1.0] * 3, abs=0.02) and cv == pytest.approx([np.arcsinh(1.0)] * 3, rel=0.05)
     assert d.thickness[1] == pytest.approx(4.0, rel=0.1)  # a solid: chords through the centre region
 
 
@@ -104,6 +155,23 @@ def _descriptor(thickness, rng, patches=None):
                         1.0 * np.exp(rng.normal(0, 0.01)), None, None, patches)
 
 
+def test_interval_gaps_are_zero_where_quartiles_overlap():
+    rng = np.random.default_rng(2)
+    a, b, c = (_descriptor(t, rng) for t in (0.02, 0.02, 0.02))
+    a = G.Descriptor(**{**a.__dict__, "kmax": np.array([1.0, 1.5, 2.0])})
+    b = G.Descriptor(**{**b.__dict__, "kmax": np.array([1.8, 2.5, 3.0])})
+    c = G.Descriptor(**{**c.__dict__, "kmax": np.array([4.0, 4.1, 4.2])})
+    gaps = G.interval_gaps([a, b, c], 1.0)[:, :, G.GAP_NAMES.index("kmax")]
+    assert gaps[0, 1] == 0.0  # [asinh 1, asinh 2] and [asinh 1.8, asinh 3] overlap
+    assert gaps[0, 2] == pytest.approx(np.arcsinh(4.0) - np.arcsinh(2.0))
+    assert gaps[1, 2] == gaps[2, 1] == pytest.approx(np.arcsinh(4.0) - np.arcsinh(3.0))
+
+
+def test_shipped_pair_model_matches_its_inputs():
+    assert len(G.FEATURE_SCALES) == len(G.FEATURE_NAMES)
+    assert len(G.PAIR_WEIGHTS) == G.N_PAIR_INPUTS + 1
+
+
 def test_pair_model_fit_recovers_a_separating_rule():
     """fit_feature_scales + fit_pair_model on heaps whose objects differ only in thickness learn
     negative thickness weights and split a new heap by them."""
@@ -122,7 +190,11 @@ def test_pair_model_fit_recovers_a_separating_rule():
     assert scales.shape == (len(G.FEATURE_NAMES),)
     assert scales[1] == pytest.approx(0.01, rel=0.5)  # the log-thickness jitter of one object
     w = G.fit_pair_model(heaps, scales)
-    assert w[1] + w[2] < -0.5 and w[-1] > 0
+    # thickness enters as the median/quartile z (per knot block) and the quartile-interval gap
+    k, blocks = len(G.FEATURE_NAMES) + len(G.GAP_NAMES), 1 + len(G.Z_KNOTS)
+    thick = [b * k + i for b in range(blocks)
+             for i in (0, 1, 2, len(G.FEATURE_NAMES) + G.GAP_NAMES.index("log_thickness"))]
+    assert w[thick].sum() < -0.5 and w[-1] > 0
     d, labels = heap(3, 5)
     p = G.same_object_probability(G.pair_features(d, scales), w)
     assert G.adjusted_rand_index(labels, G.cluster(1 - p)[0]) == pytest.approx(1.0)
