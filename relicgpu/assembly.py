@@ -121,8 +121,9 @@ class Assembly:
 
 # --- hashing and the cache ---------------------------------------------------
 
-_STAGE_MODULES = ("pipeline", "segment", "contour", "features", "fusion", "lcs", "icp", "verify", "params",
-                  "backends/__init__", "backends/numpy")
+_STAGE_MODULES = ("pipeline", "segment", "contour", "features", "fusion", "lcs", "ppf", "icp", "verify", "params",
+                  "assembly", "backends/__init__", "backends/_prep", "backends/numpy", "backends/warp",
+                  "backends/opencl")
 
 
 def fragment_hash(fragment: Fragment) -> str:
