@@ -14,7 +14,7 @@ within groups. Two ways:
   fitted once on synthetic heaps that are not the benchmark's, see
   `fit_pair_model`) gives the odds that the two come from one object;
   average-linkage agglomerative clustering on 1 - p, cut where the mean p
-  between two clusters falls below 0.6, so the number of groups is found, not
+  between two clusters falls below 0.7, so the number of groups is found, not
   given (or given, or another cut); fragments left alone or in small groups are
   then clustered among themselves at a looser cut.
 - supervised, `relicgpu train-classifier LABELS.csv`: a small PointNet over
@@ -86,15 +86,15 @@ GAP_SCALES = (0.02, 0.05, 0.02, 0.05, 0.05, 0.02)
 SHAPE_INDEX_MIN_CURVEDNESS = 1.0  # x 1/L: flatter points have no meaningful shape index
 # Per feature, how far apart two fragments of one object typically are: 1.4826 x the median
 # absolute deviation from their object's median, pooled over the objects of synthetic heaps
-# (`scripts/bench_group.py --fit 10 ... 29`). A pair's z is its difference over this. Objects that
+# (`scripts/bench_group.py --fit 10 ... 29 40 ... 59`). A pair's z is its difference over this. Objects that
 # are alike all over (a tube, a bowl) set these; pieces of a varied one (a torso's chest and
 # limbs) lie many scales apart, which the interval gaps, the spreads and the leftover stage of
 # `cluster` are for.
 # Floored at SCALE_FLOOR: synthetic walls are exact, and a 1% difference (in log length or
 # asinh curvature) is below what a scan resolves.
 SCALE_FLOOR = 0.01
-FEATURE_SCALES = (0.0100, 0.0100, 0.0100, 0.0100, 0.0100, 0.0287, 0.0508, 0.0371, 0.2386, 0.0729, 0.1606, 0.0748,
-                  0.0753, 0.0362, 0.0100, 0.0100, 0.0649, 0.0134, 0.0436, 0.0100, 0.0100)
+FEATURE_SCALES = (0.0100, 0.0100, 0.0100, 0.0100, 0.0100, 0.0336, 0.0513, 0.0359, 0.2470, 0.0700, 0.1638, 0.0770,
+                  0.0764, 0.0325, 0.0100, 0.0100, 0.0556, 0.0159, 0.0534, 0.0100, 0.0100)
 COLOUR_SCALE = 0.02
 COLOUR_WEIGHT = -1.0  # logit per unit of the mean colour z (not fitted: no coloured training heaps)
 Z_CAP = 8.0  # beyond this a feature says "different" no louder
@@ -108,26 +108,26 @@ Z_KNOTS = (1.0, 3.0)
 PATCH_TOLERANCE = 0.3
 # Logistic model of "one object" over pair_inputs: per knot block (z, then max(z - t, 0) for t in
 # Z_KNOTS) the z of FEATURE_NAMES then of the GAP_NAMES gaps, then the patch match, last the
-# intercept; class-balanced, L2 1.0, fitted by `scripts/bench_group.py --fit 10 ... 29` on heaps of
-# synthetic mixture seeds 10-29, scanned at one resolution (the benchmark scores seeds 0-4).
-# Depends on relicgpu.segment (which faces are fracture): refit when it changes. Two-fold on
-# seeds 10-29 (fitted on one half, scored on the other): mean ARI 0.973, min 0.786.
-PAIR_WEIGHTS = (-0.412, 0.427, 1.036, 0.323, 0.102, 1.670, -0.166, -0.175, -0.045, -0.100, -0.408, -0.207, 0.626,
-                1.083, 0.235, 0.721, 0.188, 0.346, 0.939, 0.868, 0.066, -0.819, 1.395, -2.537, -1.595, -1.284, -1.913,
-                -0.097, -0.792, -0.057, -2.657, -0.552, -1.256, 0.225, -0.028, -0.345, 0.164, 0.884, -0.089, -0.821,
-                -1.551, -0.407, -1.074, -0.164, -0.377, -0.133, -0.002, -0.481, 1.283, -1.217, 2.841, 2.043, 0.874,
-                2.003, 0.154, 0.439, -1.341, 2.544, 0.367, -0.626, -0.375, 0.038, 0.289, -1.039, -0.465, 0.273, 0.352,
-                0.862, 0.182, 0.269, -0.713, -0.043, -1.389, -1.014, 0.563, -0.774, -0.223, -0.504, -0.667, 0.176,
-                -0.200, 1.917, 7.310)
+# intercept; class-balanced, L2 1.0, fitted by `scripts/bench_group.py --fit 10 ... 29 40 ... 59` on
+# heaps of synthetic mixture seeds 10-29 and 40-59, scanned at one resolution (the benchmark scores
+# seeds 0-4; seeds 30-39 served to diagnose failures, never to fit).
+# Depends on relicgpu.segment (which faces are fracture): refit when it changes. Two-fold (fitted on
+# seeds 10-29, scored on 40-59, and the other way): mean ARI 0.971, min 0.791.
+PAIR_WEIGHTS = (-0.338, 0.262, 0.195, 0.210, 0.200, 1.781, -0.099, -0.362, 0.101, 0.061, -0.261, 0.093, 0.128, 0.811,
+                -0.070, 0.853, -0.076, 0.319, 0.326, 0.509, 0.370, -0.199, 0.788, -2.419, -2.457, -0.942, -1.950,
+                -0.190, -0.076, 0.132, -2.207, -0.986, -1.652, 0.038, 0.187, -0.531, 0.253, 0.622, -0.249, -0.425,
+                -1.056, -0.539, -1.041, 0.296, -0.172, 0.305, 0.319, -0.477, 0.176, -0.530, 2.752, 3.407, 0.861,
+                2.447, 0.392, -0.264, -0.453, 2.070, 0.695, -0.336, -0.189, -0.064, 0.266, -0.813, -0.381, 0.233,
+                0.476, 0.495, 0.641, 0.187, -0.967, -0.363, -1.159, -0.933, 0.222, -0.121, -0.361, -0.615, -1.248,
+                -0.168, -0.722, 0.898, 9.119)
 # Clusters merge while the mean probability of one object between them is above 1 - LINK_CUT
 # (average linkage). Fragments left in groups of at most LEFTOVER_SIZE are then clustered among
 # themselves at LEFTOVER_CUT: pieces unlike the rest of their own object (a torso's limb and its
-# chest) find each other there rather than staying alone. Chosen on seeds 10-29 (segmentation before
-# 6b6777c), models fitted on one half and scored on the other: mean ARI 0.934 (min 0.655) at
-# 0.4 / 3 / 0.9; 0.924 at 0.3 / 3; 0.914 at 0.4 / 2; 0.877 with no leftover stage (0.3).
-# Rechecked with the interval gaps and knots (two-fold, L2 1e-2): 0.969 (min 0.821) at 0.4 / 3 / 0.9,
-# 0.975 at 0.4 / 4, 0.964 at 0.3 / 3, 0.966 (min 0.677) at 0.5 / 3.
-LINK_CUT = 0.4
+# chest) find each other there rather than staying alone. Chosen with the model below by two-fold
+# on seeds 10-29 and 40-59 (fitted on one half, scored on the other): mean ARI 0.971 (min 0.791) at
+# 0.3 / 3 / 0.9; 0.960 (min 0.667) at 0.4; 0.968 at 0.25; 0.952 at 0.5; single linkage weighted
+# 0.967, complete 0.922-0.944; leftover settings 2-5 / 0.8-0.95 within 0.01 of one another.
+LINK_CUT = 0.3
 LEFTOVER_SIZE = 3
 LEFTOVER_CUT = 0.9
 CLASSIFIER_POINTS = 256
