@@ -258,6 +258,7 @@ def main(argv=None) -> int:
                     help=f"scan resolution, one for every object: edge length in units of a scale-1 object's "
                          f"diagonal (default: {EDGE})")
     ap.add_argument("--epochs", type=int, default=100)
+    ap.add_argument("--classifier-seed", type=int, default=0, help="torch seed of the PointNet's training")
     ap.add_argument("--cache", default="/tmp/relicgpu_bench_honest", help="synth cache ('' for none)")
     ap.add_argument("--no-supervised", action="store_true")
     ap.add_argument("--fit", type=int, nargs="+", default=None, metavar="SEED",
@@ -321,10 +322,11 @@ def main(argv=None) -> int:
             train_f += frs
             train_l += [shape] * len(frs)
     t1 = time.perf_counter()
-    clf = G.train_classifier(train_f, train_l, epochs=args.epochs, progress=True)
+    clf = G.train_classifier(train_f, train_l, epochs=args.epochs, seed=args.classifier_seed, progress=True)
     t2 = time.perf_counter()
     print(f"\nSupervised PointNet: trained on {len(train_f)} fragments of {len(SHAPES)} shapes, synth seeds "
-          f"{args.train_seeds} x10+k ({t1 - t0:.1f} s synth, {t2 - t1:.1f} s train, {args.epochs} epochs)")
+          f"{args.train_seeds} x10+k ({t1 - t0:.1f} s synth, {t2 - t1:.1f} s train, {args.epochs} epochs, "
+          f"seed {args.classifier_seed})")
     print(f"{'seed':>4} {'frags':>5} {'accuracy':>8}")
     correct = total = 0
     confusions = {}
