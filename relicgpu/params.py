@@ -53,6 +53,7 @@ class Params:
     screen_keep: int = 24            # the best starts then run ...
     screen_more_iterations: int = 30  # ... this many rounds more
     screen_reject: float = 0.1       # pairs farther than this are left out of the ranking fits
+    screen_trim: float = 0.05        # ... as are those farther than 3x this quantile of the distances
 
     # ICP (Eq. 34-35, Alg. 5)
     icp_points: int = 1500           # fracture points sampled per fragment

@@ -279,15 +279,18 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
 
     candidates = []
     if starts:
-        # rank every start by a short batched ICP on a small sample, keep the best few
+        # rank every start by a short batched ICP on a small sample, keep the best few. The screen
+        # fits only the nearest twentieth of the points (screen_trim): its reject distance is wide
+        # for starts 20 degrees off, and a contact of an eighth of b's fracture, nearest fifth
+        # trimmed in, was dragged off by the rest of b bending away (a true start lost its share)
         sub_b = pb.sample.fracture[:: max(1, len(pb.sample.fracture) // params.screen_points)]
         reject, floor = params.screen_reject * scale, params.contact_distance * scale
         poses, share = batched_icp(sub_b, pa.sample.fracture, np.array(starts), be, params.screen_iterations,
-                                   reject, floor, trim=params.icp_trim, index=index_of(pa.sample.fracture))
+                                   reject, floor, trim=params.screen_trim, index=index_of(pa.sample.fracture))
         # the most promising starts go on longer (a start can be 20 degrees off)
         keep = np.argsort(-share, kind="stable")[: params.screen_keep]
         poses, share = batched_icp(sub_b, pa.sample.fracture, poses[keep], be, params.screen_more_iterations,
-                                   reject, floor, trim=params.icp_trim, index=index_of(pa.sample.fracture))
+                                   reject, floor, trim=params.screen_trim, index=index_of(pa.sample.fracture))
         order = _distinct(poses, np.argsort(-share, kind="stable"), params.hypotheses, 0.02 * scale)
         candidates = [(share[k], poses[k], *origins[keep[k]][1:]) for k in order]
     timings["coarse"] = time.perf_counter() - t0
