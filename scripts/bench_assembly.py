@@ -10,11 +10,12 @@ the time of each stage.
     python scripts/bench_assembly.py --grid-only --faces 2000
     python scripts/bench_assembly.py --scale-only --backend warp-cuda --json out.json
 
-Prints tables and writes all figures to --json (default bench_assembly.json).
+Prints tables; --json also writes all figures there. Synthetic data is kept under --work between runs, named by its settings and the source of relicgpu/synth.py (never reused from an older synth).
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -79,14 +80,23 @@ def run_one(frag_dir: Path, truth: dict, args, out_dir: Path | None = None) -> d
     }
 
 
+def synth_dir(work: Path, **settings) -> Path:
+    """A synthetic break kept under `work` between runs, named by its settings and by the source
+    of relicgpu/synth.py: data from an older synth (or other --faces) is never silently reused."""
+    code = hashlib.sha256(Path(synth.__file__).read_bytes()).hexdigest()[:8]
+    name = "_".join(str(v) for v in settings.values())
+    d = work / f"{name}_{code}"
+    if not (d / "truth.json").exists():
+        synth.write(synth.generate(**settings, progress=False), d)
+    return d
+
+
 def grid(args, work: Path) -> list[dict]:
     rows = []
     for shape in args.shapes:
         for pieces in args.pieces:
             for seed in args.seeds:
-                d = work / f"{shape}_{pieces}_{seed}"
-                if not (d / "truth.json").exists():
-                    synth.write(synth.generate(shape, pieces=pieces, seed=seed, faces=args.faces, progress=False), d)
+                d = synth_dir(work, shape=shape, pieces=pieces, seed=seed, faces=args.faces)
                 row = run_one(d / "fragments", synth.read_truth(d), args)
                 row.update(shape=shape, pieces=pieces, seed=seed)
                 rows.append(row)
@@ -101,13 +111,10 @@ def scale(args, work: Path) -> list[dict]:
     objects = []
     for k in range(max(args.scale_sizes) // 10):
         shape = SHAPES[k % len(SHAPES)]
-        path = d / f"obj{k}"
-        if not (path / "truth.json").exists():
-            synth.write(synth.generate(shape, pieces=10, seed=100 + k, faces=args.scale_faces, progress=False), path)
-        objects.append(path)
+        objects.append(synth_dir(d, shape=shape, pieces=10, seed=100 + k, faces=args.scale_faces))
     rows = []
     for size in args.scale_sizes:
-        mixed = d / f"mixed_{size}"
+        mixed = d / f"mixed_{size}_{args.scale_faces}_{objects[0].name.rsplit('_', 1)[-1]}"  # the synth version
         if not (mixed / "truth.json").exists():
             _mix(objects[: size // 10], mixed)
         row = run_one(mixed / "fragments", synth.read_truth(mixed), args)
@@ -206,7 +213,7 @@ def main(argv=None) -> int:
     ap.add_argument("--grid-only", action="store_true")
     ap.add_argument("--scale-only", action="store_true")
     ap.add_argument("--work", default=None, help="where synthetic data is kept (reused between runs)")
-    ap.add_argument("--json", default="bench_assembly.json")
+    ap.add_argument("--json", default=None, help="also write the rows to this JSON file")
     args = ap.parse_args(argv)
 
     work = Path(args.work) if args.work else Path(tempfile.gettempdir()) / "relicgpu_bench_assembly"
@@ -224,8 +231,9 @@ def main(argv=None) -> int:
         rows = scale(args, work)
         report["scale"] = rows
         print_scale(rows)
-    Path(args.json).write_text(json.dumps(report, indent=1, default=float))
-    print(f"\nwrote {args.json}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=1, default=float))
+        print(f"\nwrote {args.json}")
     return 0
 
 
