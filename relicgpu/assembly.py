@@ -44,9 +44,9 @@ CACHE_VERSION = 1
 TOP_K = 8
 # The point-pair screen: fracture points per fragment, and the weight of the contour LCS score
 # beside it (it only breaks ties: alone it ranks at chance). On a mix of four 10-piece objects
-# (~4500 faces a piece) recall of touching pairs at k = 8 is 0.80 at 400 points, 0.71 at 250;
-# the votes cost 9.0 vs 1.7 ms a pair on this CPU (they grow as the fourth power).
-SCREEN_PPF_POINTS = 400
+# (~4500 faces a piece) recall of touching pairs at k = 8 is 0.71 / 0.78 / 0.72 / 0.80 at 250 /
+# 300 / 340 / 400 points, the votes cost 1.7 / 3.1 / 4.5 / 9.0 ms a pair on this CPU.
+SCREEN_PPF_POINTS = 300
 SCREEN_LCS_WEIGHT = 1e-3
 # Two placements of a fragment agree when its fracture points move less than this RMS
 # (a fraction of the working scale).
