@@ -10,8 +10,8 @@ of the shared objects it needs; the function is called as
   (its `releases_gil` attribute), else one job after the other.
 * `ray`: each job is a Ray task. `address` joins a running cluster, otherwise a
   local Ray starts with `workers` CPUs (or the machine's). Shared objects go
-  into the object store once; a task takes one GPU where the cluster has GPUs
-  (or `gpus_per_task`, a fraction, so that several tasks share a GPU);
+  into the object store once; a task takes one GPU where the cluster has GPUs and the
+  backend runs on one (or `gpus_per_task`, a fraction, so that several tasks share a GPU);
   a task lost with its worker or node is retried by Ray (`max_retries`).
   Scheduling, retries and data movement are all Ray's.
 """
@@ -38,8 +38,22 @@ def make_engine(name: str, workers: int | None = None, address: str | None = Non
     if name == "local":
         return LocalEngine(workers, threads=bool(getattr(backend, "releases_gil", False)))
     if name == "ray":
-        return RayEngine(workers, address, gpus_per_task)
+        return RayEngine(workers, address, gpus_per_task, needs_gpu=backend is None or on_gpu(backend))
     raise ValueError(f"unknown engine {name!r}; choose from {', '.join(ENGINES)}")
+
+
+def on_gpu(backend) -> bool:
+    """Whether a backend runs its kernels on a GPU (warp-cuda, an OpenCL GPU)."""
+    return getattr(backend, "kind", "cpu") in ("cuda", "gpu")
+
+
+def task_gpus(cluster_gpus: int, requested: float | None, needs_gpu: bool) -> float:
+    """GPUs a task asks Ray for: none where the cluster has none or the backend runs on the CPU
+    (a numpy run on a GPU host asking one GPU per task had run one task at a time), else the
+    request, by default one."""
+    if not cluster_gpus or not needs_gpu:
+        return 0.0
+    return 1.0 if requested is None else float(requested)
 
 
 class LocalEngine:
@@ -75,7 +89,8 @@ class LocalEngine:
 class RayEngine:
     name = "ray"
 
-    def __init__(self, workers: int | None = None, address: str | None = None, gpus_per_task: float | None = None):
+    def __init__(self, workers: int | None = None, address: str | None = None, gpus_per_task: float | None = None,
+                 needs_gpu: bool = True):
         try:
             import ray
         except ImportError as exc:  # ray is an optional dependency
@@ -96,7 +111,7 @@ class RayEngine:
         self.cpus = int(resources.get("CPU", 1))
         # One GPU per task where the cluster has GPUs; a fraction lets several tasks share one
         # (the pair work is mostly host code around short kernels).
-        self.gpus_per_task = (1.0 if gpus_per_task is None else float(gpus_per_task)) if self.gpus else 0.0
+        self.gpus_per_task = task_gpus(self.gpus, gpus_per_task, needs_gpu)
         if self.gpus_per_task > 1 and self.gpus_per_task != int(self.gpus_per_task) or self.gpus_per_task > self.gpus:
             self.close()  # a task asking for more than a node can give would wait forever
             raise ValueError(f"gpus_per_task must be a fraction or a whole number up to {self.gpus}, got {gpus_per_task}")

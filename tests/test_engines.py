@@ -121,3 +121,15 @@ def test_ray_worker_killed_mid_run_is_retried_and_nothing_is_lost(ray_session, s
         watcher.join(5)
     assert killed, "no Ray worker was seen running a match task"
     assert _comparable(result.to_dict()) == local_doc
+
+
+def test_ray_tasks_ask_for_a_gpu_only_for_a_gpu_backend():
+    from relicgpu.backends import get_backend
+    from relicgpu.engines import on_gpu, task_gpus
+
+    assert not on_gpu(get_backend("numpy"))
+    assert task_gpus(1, None, needs_gpu=False) == 0.0  # numpy on a GPU host: all CPUs work at once
+    assert task_gpus(1, 0.25, needs_gpu=False) == 0.0
+    assert task_gpus(1, None, needs_gpu=True) == 1.0
+    assert task_gpus(2, 0.0625, needs_gpu=True) == 0.0625
+    assert task_gpus(0, 1.0, needs_gpu=True) == 0.0  # no GPU in the cluster
