@@ -75,20 +75,6 @@ def test_wall_thickness_of_a_tube():
     assert d.chord == pytest.approx(d.thickness) and d.wall_share > 0.9  # every inward ray meets the wall
 
 
-def test_curvature_of_a_cylinder():
-    import trimesh
-    from trimesh.remesh import subdivide_to_size
-
-    c = trimesh.creation.cylinder(radius=1.0, height=3.0, sections=96)
-    v, f = subdivide_to_size(c.vertices, c.faces, max_edge=0.1)
-    d = G.describe(Fragment("cyl", np.asarray(v, float), np.asarray(f, np.int32)))
-    side = d.curvatures[np.abs(d.curvatures[:, 0] - 1.0) < 0.1]
-    assert len(side) > 0.5 * len(d.curvatures)  # the side holds most of the area
-    assert np.abs(side[:, 1]).max() < 0.05  # along the axis: flat
-    si, _ = d.shape_measures(1.0)
-    assert si[1] == pytest.approx(0.5, abs=0.05)  # |shape index| of a cylinder (its rims: 90-degree creases)
-
-
 def test_solid_pieces_have_chords_hollow_ones_walls():
     """Rays from a solid torso's pieces mostly end on a cut (fracture), a vase's on its inner wall."""
     share = {}
