@@ -45,6 +45,7 @@ class Params:
     ppf_distance_step: float = 0.03  # ... feature quantisation: distance ...
     ppf_angle_step_deg: float = 12.0  # ... and angles
     ppf_starts: int = 24             # ... poses kept (best-voted reference points)
+    ppf_max_distance: float = 0.2    # ... only pairs of points nearer than this vote (0: all pairs)
     max_patches: int = 3             # fracture patches per fragment tried face to face ...
     min_patch_share: float = 0.15    # ... if at least this share of the largest patch's area
     patch_turns: int = 12            # turns about the common normal tried per patch pair

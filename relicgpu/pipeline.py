@@ -179,14 +179,17 @@ def _ppf_table(sample: SurfaceSample, params: Params, scale: float, role: str) -
     content, not identity: an engine's worker gets a fresh copy of a fragment with every job."""
     points, normals = ppf_points(sample, params.ppf_points)
     key = (hashlib.blake2b(points.tobytes() + normals.tobytes(), digest_size=16).digest(),
-           role, params.ppf_points, params.ppf_distance_step * scale, params.ppf_angle_step_deg)
+           role, params.ppf_points, params.ppf_distance_step * scale, params.ppf_angle_step_deg,
+           params.ppf_max_distance * scale)
     table = _PPF_TABLES.pop(key, None)  # re-inserted last: the least recently used goes first
     if table is None:
         step = params.ppf_distance_step * scale
+        reach = params.ppf_max_distance * scale if params.ppf_max_distance > 0 else None
         if role == "model":
-            table = pair_table(points, normals, step, params.ppf_angle_step_deg)
+            table = pair_table(points, normals, step, params.ppf_angle_step_deg, max_distance=reach)
         else:
-            table = pair_table(points, -normals, step, params.ppf_angle_step_deg, reference_stride=3, sort=False)
+            table = pair_table(points, -normals, step, params.ppf_angle_step_deg, reference_stride=3, sort=False,
+                               max_distance=reach)
         while len(_PPF_TABLES) >= 12:
             _PPF_TABLES.pop(next(iter(_PPF_TABLES)))
     _PPF_TABLES[key] = table

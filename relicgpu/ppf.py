@@ -98,8 +98,9 @@ class PairTable:
 
 
 def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_step_deg: float = 12.0,
-               reference_stride: int = 1, sort: bool = True) -> PairTable:
-    """Every pair (ref, other) with ref among every `reference_stride`-th point."""
+               reference_stride: int = 1, sort: bool = True, max_distance: float | None = None) -> PairTable:
+    """Every pair (ref, other) with ref among every `reference_stride`-th point (and, with
+    max_distance, the other point in a distance bin that starts within max_distance)."""
     n = len(points)
     angle_step = np.radians(angle_step_deg)
     angle_bins = int(np.ceil(np.pi / angle_step)) + 1
@@ -112,8 +113,11 @@ def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_
     alpha = np.arctan2(yz[:, 1], yz[:, 0]).astype(np.float32)
     other = np.ones((len(refs), n), bool)
     other[np.arange(len(refs)), refs] = False
+    if max_distance is not None:
+        # a small contact's pairs are short; long pairs only add chance agreements elsewhere
+        other &= key // angle_bins ** 3 <= max_distance / dist_step
+    ref = np.nonzero(other)[0].astype(np.int32)
     key, alpha = key[other], alpha[other]
-    ref = np.repeat(np.arange(len(refs), dtype=np.int32), max(n - 1, 0))
     start = None
     if sort:
         order = np.argsort(key, kind="stable")
