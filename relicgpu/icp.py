@@ -116,9 +116,10 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, backend, itera
     shrinking with the median distance, never under `floor`) are left out of the fit.
     Stops when the mean distance d changes less than `tolerance`.
     """
+    index = backend.nearest_index(target)
     poses, _ = batched_icp(source, target, np.asarray(init, np.float64)[None], backend, iterations, reject, floor,
-                           tolerance if tolerance > 0 else 1e-300)
-    _, dist = backend.nearest_neighbors(apply(poses[0], source), target)
+                           tolerance if tolerance > 0 else 1e-300, index=index)
+    _, dist = index.query(apply(poses[0], source))
     return IcpResult(poses[0], float(np.mean(dist)), iterations)
 
 

@@ -129,13 +129,20 @@ def _flag_intervals(a: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def nn_inputs(source, target) -> tuple[np.ndarray, np.ndarray]:
-    """Source and target as contiguous (N,3) float64; an empty target is an error."""
-    src = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
+def nn_target(target) -> np.ndarray:
+    """A nearest-neighbour target as contiguous (N,3) float64; an empty target is an error."""
     dst = np.ascontiguousarray(np.asarray(target, np.float64).reshape(-1, 3))
     if len(dst) == 0:
         raise ValueError("nearest_neighbors: the target point set is empty")
-    return src, dst
+    return dst
+
+
+def nn_source(source) -> np.ndarray:
+    """Query points as contiguous (N,3) float64; NaN or infinite coordinates are an error."""
+    src = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
+    if not np.isfinite(src).all():
+        raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
+    return src
 
 
 def check_offsets(values: np.ndarray, offsets, what: str) -> np.ndarray:

@@ -311,14 +311,11 @@ class OpenCLBackend:
     # --- family 4 -----------------------------------------------------------------
 
     def nearest_neighbors(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        src, dst = _prep.nn_inputs(source, target)
-        if len(src) == 0:
-            return np.zeros(0, np.int32), np.zeros(0)
-        return self.nearest_index(dst).query(src)
+        return self.nearest_index(target).query(source)
 
     def nearest_index(self, target: np.ndarray) -> "OpenCLNearestIndex":
         """The target uploaded and (when queries need it) sorted into a grid once, for many queries."""
-        _, dst = _prep.nn_inputs(np.zeros((0, 3)), target)
+        dst = _prep.nn_target(target)
         return OpenCLNearestIndex(self, dst)
 
     def _bounds(self, points_d, n: int):
@@ -382,12 +379,10 @@ class OpenCLNearestIndex:
 
     def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         be = self.be
-        src = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
+        src = _prep.nn_source(source)
         ns = len(src)
         if ns == 0:
             return np.zeros(0, np.int32), np.zeros(0)
-        if not np.isfinite(src).all():
-            raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
         with be._lock:
             src_d = be._to_device(src.astype(be.real, copy=False))
             src32 = be._empty(12 * ns)

@@ -158,14 +158,11 @@ class WarpBackend:
     # --- family 4 ----------------------------------------------------------------
 
     def nearest_neighbors(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        src, dst = _prep.nn_inputs(source, target)
-        if len(src) == 0:
-            return np.zeros(0, np.int32), np.zeros(0)
-        return self.nearest_index(dst).query(src)
+        return self.nearest_index(target).query(source)
 
     def nearest_index(self, target: np.ndarray) -> "WarpNearestIndex":
         """The target uploaded and (when queries need it) sorted into a grid once, for many queries."""
-        _, dst = _prep.nn_inputs(np.zeros((0, 3)), target)
+        dst = _prep.nn_target(target)
         with self._staging_lock:
             return WarpNearestIndex(self, self._upload_vec3d(dst, "target"))
 
@@ -232,11 +229,9 @@ class WarpNearestIndex:
         self._counts = None  # per-cell counts, then the scatter's cursors
 
     def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        src = np.ascontiguousarray(np.asarray(source, np.float64).reshape(-1, 3))
+        src = _prep.nn_source(source)
         if len(src) == 0:
             return np.zeros(0, np.int32), np.zeros(0)
-        if not np.isfinite(src).all():
-            raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
         with self.be._staging_lock:  # the staging buffers are reused once the results are back
             idx, dist = self.query_device(self.be._upload_vec3d(src, "source"))
             return idx.numpy(), dist.numpy()
