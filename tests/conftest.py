@@ -5,12 +5,20 @@ each CUDA device (skipped where there is none); opencl:<platform> for each
 OpenCL platform with a device (skipped where pyopencl or a platform is missing).
 `device_backend` is the same list without numpy, for comparisons with the
 numpy reference.
+
+A backend that loads but fails its self-check (wrong answers) fails its tests; it is
+never skipped. RELICGPU_REQUIRE_BACKENDS (comma-separated names; `opencl` stands for
+every OpenCL platform) turns "not available" skips of those backends into failures.
 """
 from __future__ import annotations
 
+import os
+
 import pytest
 
-from relicgpu.backends import BackendError, get_backend
+from relicgpu.backends import BackendError, BackendRefused, get_backend
+
+REQUIRED = [n.strip() for n in os.environ.get("RELICGPU_REQUIRE_BACKENDS", "").split(",") if n.strip()]
 
 
 def _backend_names() -> list[str]:
@@ -46,10 +54,18 @@ def _param(name: str):
     return pytest.param(name, id=name.replace(" ", "_"), marks=marks)
 
 
+def _required(name: str) -> bool:
+    return any(name == r or name.partition(":")[0] == r for r in REQUIRED)
+
+
 def _load(name: str):
     try:
         return get_backend(name)
+    except BackendRefused as exc:
+        pytest.fail(str(exc))
     except BackendError as exc:
+        if _required(name):
+            pytest.fail(f"{exc} (RELICGPU_REQUIRE_BACKENDS names it)")
         pytest.skip(str(exc))
 
 

@@ -23,8 +23,10 @@ __kernel void flag_matrix(__global const float2 *thr, __global const float *b,
     flags[(size_t)i * n_cols + j] = (uchar)INSIDE(b[j], t.x, t.y);
 }
 
-#ifdef RELIC_VECTOR_MASKS
-/* CPU devices: 16 compares as one vector operation, folded into 16 bits. */
+#if RELIC_VECTOR_MASKS == 16
+/* CPU devices: 16 compares as one vector operation, folded into 16 bits. Only where the
+   device compiles 16-wide float compares right: PoCL's LLVM 14 gets this fold wrong for
+   CPUs without AVX-512 (haswell, znver3), so the host picks the width by self-check. */
 static inline uint mask16(const float16 b, const float lo, const float hi)
 {
     const int16 in = (b >= (float16)(lo)) & (b <= (float16)(hi));
@@ -38,8 +40,25 @@ static inline uint mask16(const float16 b, const float lo, const float hi)
 #define BLOCK_LOAD(src) (q0 = vload16(0, src), q1 = vload16(1, src), q2 = vload16(2, src), q3 = vload16(3, src))
 #define ROW_MASK(lo, hi) ((((ulong)(mask16(q2, lo, hi) | (mask16(q3, lo, hi) << 16))) << 32) \
                           | (ulong)(mask16(q0, lo, hi) | (mask16(q1, lo, hi) << 16)))
+#elif RELIC_VECTOR_MASKS == 8
+/* CPU devices with 8-wide float vectors (AVX2): 8 compares as one operation, 8 bits. */
+static inline uint mask8(const float8 b, const float lo, const float hi)
+{
+    const int8 in = (b >= (float8)(lo)) & (b <= (float8)(hi));
+    const int8 w = in & (int8)(1, 2, 4, 8, 16, 32, 64, 128);
+    const int4 s4 = w.lo | w.hi;
+    const int2 s2 = s4.lo | s4.hi;
+    return (uint)(s2.x | s2.y);
+}
+#define BLOCK_DECL float8 q0, q1, q2, q3, q4, q5, q6, q7
+#define BLOCK_LOAD(src) (q0 = vload8(0, src), q1 = vload8(1, src), q2 = vload8(2, src), q3 = vload8(3, src), \
+                         q4 = vload8(4, src), q5 = vload8(5, src), q6 = vload8(6, src), q7 = vload8(7, src))
+#define MASK32(a, b, c, d, lo, hi) \
+    (mask8(a, lo, hi) | (mask8(b, lo, hi) << 8) | (mask8(c, lo, hi) << 16) | (mask8(d, lo, hi) << 24))
+#define ROW_MASK(lo, hi) ((((ulong)MASK32(q4, q5, q6, q7, lo, hi)) << 32) | (ulong)MASK32(q0, q1, q2, q3, lo, hi))
 #else
-/* GPUs: one compare pair per lane-cell; four OR chains for instruction-level parallelism. */
+/* GPUs (and CPUs where no vector width passes the self-check): one compare pair per
+   lane-cell; four OR chains for instruction-level parallelism. */
 static inline uint row_mask32(const float *bb, const float lo, const float hi)
 {
     uint m0 = 0, m1 = 0, m2 = 0, m3 = 0;

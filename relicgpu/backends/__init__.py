@@ -2,22 +2,33 @@
 
 A backend is an object with the functions of `relicgpu.backends.numpy` (the float64
 specification): face_normals, edge_angles, contour_features, flag_matrix,
-lcs_lengths, nearest_neighbors, cross_covariance, and a `name`.
+lcs_lengths, nearest_neighbors, nearest_index, cross_covariance, and a `name`.
 `auto` (and the RELICGPU_BACKEND environment variable) chooses one; see `resolve`.
+
+No backend is trusted on sight: `get_backend` runs `selfcheck.run` on it once per
+process and refuses it (`BackendRefused`, one warning line on stderr) when any kernel
+family disagrees with the NumPy reference; `auto` then picks among the others.
 """
 from __future__ import annotations
 
 import functools
 import os
+import sys
+import threading
 import time
 
 import numpy as np
 
 from . import numpy as numpy_backend
+from . import selfcheck
 
 
 class BackendError(RuntimeError):
     """A backend that was asked for cannot be used here (named, with the reason)."""
+
+
+class BackendRefused(BackendError):
+    """A backend that loads but gives wrong answers: it failed its self-check."""
 
 
 def _load(name: str):
@@ -36,42 +47,91 @@ def _load(name: str):
     raise BackendError(f"unknown backend {name!r}; choose from numpy, warp-cpu, warp-cuda[:N], opencl[:PLATFORM], auto")
 
 
-@functools.lru_cache(maxsize=None)
-def get_backend(name: str):
-    """The backend called `name` (not `auto`), created once per process."""
+_loaded: dict[str, object] = {}  # name -> backend, or the BackendError it raised
+_checks: dict[str, dict[str, str | None]] = {}  # name -> self-check result per family
+_loading = threading.RLock()
+
+
+def _load_checked(name: str):
     try:
-        return _load(name)
+        backend = _load(name)
     except BackendError:
         raise
     except Exception as exc:  # missing package, no device, driver error
         raise BackendError(f"backend {name!r} is not available: {exc}") from exc
+    if backend is numpy_backend:
+        return backend
+    t0 = time.perf_counter()
+    result = selfcheck.run(backend)
+    result_s = time.perf_counter() - t0
+    _checks[name] = result
+    wrong = {family: why for family, why in result.items() if why}
+    if wrong:
+        family, why = next(iter(wrong.items()))
+        message = (f"backend {name!r} refused: its {', '.join(wrong)} kernel{'s' if len(wrong) > 1 else ''} "
+                   f"disagree{'' if len(wrong) > 1 else 's'} with the NumPy reference ({family}: {why})")
+        print(f"relicgpu: warning: {message}", file=sys.stderr)
+        raise BackendRefused(message)
+    backend.selfcheck_s = result_s
+    return backend
+
+
+def get_backend(name: str):
+    """The backend called `name` (not `auto`), created and self-checked once per process.
+
+    Raises BackendError when it cannot load here, BackendRefused (a BackendError) when
+    it loads but any kernel family disagrees with the NumPy reference."""
+    with _loading:
+        if name not in _loaded:
+            try:
+                _loaded[name] = _load_checked(name)
+            except BackendError as exc:
+                if name.partition(":")[0] not in ("numpy", "warp-cpu", "warp-cuda", "opencl"):
+                    raise  # an unknown name is not remembered
+                _loaded[name] = exc
+        got = _loaded[name]
+    if isinstance(got, BackendError):
+        raise got
+    return got
+
+
+def selfcheck_results() -> dict[str, dict[str, str | None]]:
+    """The self-check of every backend checked so far in this process: {name: {family: None or why}}."""
+    return dict(_checks)
 
 
 def available_backends() -> list[str]:
-    """Names of the backends that load and run here, numpy first."""
-    names = ["numpy"]
-    candidates = ["warp-cpu"]
+    """Names of the backends that load, pass their self-check and run here, numpy first."""
+    names = candidate_backends()
+    return [name for name in names if _usable(name)]
+
+
+def candidate_backends() -> list[str]:
+    """Every backend name worth trying here (loaded or not), numpy first."""
+    names = ["numpy", "warp-cpu"]
     try:
         import warp as wp
         from .warp import _quiet_warp
         _quiet_warp(wp)
         wp.init()
-        candidates += [f"warp-cuda:{d.ordinal}" for d in wp.get_cuda_devices()]
+        names += [f"warp-cuda:{d.ordinal}" for d in wp.get_cuda_devices()]
     except Exception:
         pass
     try:
         # through the backend module: it must repair PoCL before devices are listed
         from .opencl import platform_names
-        candidates += [f"opencl:{name}" for name in platform_names()]
+        names += [f"opencl:{name}" for name in platform_names()]
     except Exception:
         pass
-    for name in candidates:
-        try:
-            get_backend(name)
-            names.append(name)
-        except BackendError:
-            continue
     return names
+
+
+def _usable(name: str) -> bool:
+    try:
+        get_backend(name)
+        return True
+    except BackendError:
+        return False
 
 
 def _probe_time(backend, repeats: int = 3, give_up_after: float = float("inf")) -> float:

@@ -16,15 +16,37 @@ def _device_name(backend) -> str:
     return getattr(backend, "device_name", None) or "host CPU (float64 reference)"
 
 
-def cli_main(args) -> int:
-    from . import available_backends, fastest_backend, get_backend, probe_times
+def _status(name: str) -> tuple[str, str, str | None]:
+    """(state, device or reason, what the self-check says) of one candidate backend."""
+    from . import BackendError, BackendRefused, get_backend, selfcheck_results
 
-    names = available_backends()
-    rows = []
-    times = {} if args.no_probe else probe_times()
-    for name in names:
+    try:
         backend = get_backend(name)
-        rows.append({"name": name, "device": _device_name(backend), "probe_s": times.get(name)})
+    except BackendRefused as exc:
+        return "refused", str(exc), "refused"
+    except BackendError as exc:
+        return "unavailable", str(exc), None
+    if name == "numpy":
+        return "ok", _device_name(backend), "the reference"
+    checked = selfcheck_results().get(name, {})
+    note = f"ok ({len(checked)} kernel families agree, checked in {getattr(backend, 'selfcheck_s', 0) * 1e3:.0f} ms)"
+    refused_widths = getattr(backend, "lcs_masks_refused", None)
+    if refused_widths:
+        note += f"; LCS vector width {backend.lcs_masks} ({', '.join(map(str, refused_widths))} disagreed)"
+    return "ok", _device_name(backend), note
+
+
+def cli_main(args) -> int:
+    from . import candidate_backends, fastest_backend, get_backend, probe_times
+
+    rows = []
+    for name in candidate_backends():
+        state, device, check = _status(name)
+        rows.append({"name": name, "state": state, "device": device if state == "ok" else None,
+                     "reason": None if state == "ok" else device, "selfcheck": check, "probe_s": None})
+    times = {} if args.no_probe else probe_times()
+    for r in rows:
+        r["probe_s"] = times.get(r["name"])
     auto = None if args.no_probe else min(times, key=lambda n: times[n])
     if not args.no_probe:
         fastest_backend.cache_clear()
@@ -35,9 +57,12 @@ def cli_main(args) -> int:
         return 0
     width = max(len(r["name"]) for r in rows)
     for r in rows:
+        if r["state"] != "ok":
+            print(f"{r['name']:<{width}}  {r['state'].upper()}: {r['reason']}")
+            continue
         t = r["probe_s"]
         shown = "" if t is None else ("   probe: gave up (>5x the best)" if t == float("inf") else f"   probe: {t * 1e3:8.1f} ms")
-        print(f"{r['name']:<{width}}  {r['device']}{shown}")
+        print(f"{r['name']:<{width}}  {r['device']}{shown}   self-check: {r['selfcheck']}")
     if auto:
         print(f"auto -> {auto}" + (f"   (RELICGPU_BACKEND={env} overrides it)" if env else ""))
     elif env:

@@ -1,11 +1,12 @@
-"""OpenCL backend (pyopencl): the four kernel families on any OpenCL platform,
-PoCL on a CPU (all cores) or a GPU vendor's driver.
+"""OpenCL backend (pyopencl): the kernel families on any OpenCL platform, PoCL on a
+CPU (all cores) or a GPU vendor's driver.
 
 Kernels live in `relicgpu.kernels.opencl` (kernels/opencl/*.cl). `program(name)`
 builds a source once per process and caches it, with device-dependent options
-(`-DHAVE_FP64` where the device has doubles, `-DRELIC_VECTOR_MASKS` on CPUs);
-other stages can build their own kernels through `program`, `ctx` and `queue`.
-Same functions, signatures and return types as `relicgpu.backends.numpy`.
+(`-DHAVE_FP64` where the device has doubles; for lcs.cl on CPUs,
+`-DRELIC_VECTOR_MASKS=16|8`, the widest vector width whose build passes the LCS
+self-check); other stages can build their own kernels through `program`, `ctx`
+and `queue`. Same functions, signatures and return types as `relicgpu.backends.numpy`.
 
 Import this module before anything else touches pyopencl's devices: it repairs
 PoCL's CPU detection on processors newer than PoCL's LLVM (see
@@ -52,22 +53,29 @@ def _host_llvm_cpu() -> str:
 
 
 def _repair_pocl_cpu_name() -> str | None:
-    """Work around PoCL 3.x on CPUs its LLVM does not know (here: AMD Zen 5).
+    """Give PoCL a CPU target it can compile for, where it cannot find one itself.
 
-    PoCL asks LLVM for the host CPU name; an LLVM older than the CPU answers
-    "generic", which clang then rejects ("unknown target CPU 'generic'", pocl
-    issue #1049), so every program build fails. The PoCL wheel links LLVM
-    statically with -Bsymbolic, so the name cannot be interposed; instead the
+    The PoCL on PyPI (pocl-binary-distribution 3.0, PoCL 3.0-rc2 with LLVM 14, the
+    newest there) asks LLVM for the host CPU name; on CPUs newer than LLVM 14 (AMD
+    Zen 5) LLVM answers "generic", which clang then rejects ("unknown target CPU
+    'generic'", pocl issue #1049), so every program build fails. PoCL 3.0 reads no
+    setting for its CPU target (no environment variable, and build options do not
+    reach its code generator), and the wheel links LLVM statically with -Bsymbolic,
+    so the name cannot be interposed either. What is left, and what this does: the
     exported `pocl_get_llvm_cpu_name` is overwritten in memory with a jump to
-    strdup(<a name LLVM knows>), chosen from the CPU's feature flags. This runs
-    only when PoCL reports "generic", only on x86-64 Linux, and must happen
-    before pyopencl first lists devices. Set RELICGPU_POCL_NO_REPAIR=1 to skip.
+    strdup(<a name LLVM knows>), chosen from the CPU's feature flags. Whatever it
+    compiles is then self-checked against the NumPy reference like any backend.
+
+    Runs when PoCL reports "generic", or always with RELICGPU_POCL_CPU=<LLVM CPU name>
+    (to choose PoCL's target by hand, e.g. `haswell`); only on x86-64 Linux, and
+    before pyopencl first lists devices. RELICGPU_POCL_NO_REPAIR=1 skips it.
     Returns the name written, or None when nothing was done."""
     global _pocl_cpu_name_buffer
     if _pocl_cpu_name_buffer is not None or os.environ.get("RELICGPU_POCL_NO_REPAIR"):
         return None
     if _platform.system() != "Linux" or _platform.machine() != "x86_64":
         return None
+    wanted = os.environ.get("RELICGPU_POCL_CPU") or None
     spec = importlib.util.find_spec("pyopencl")
     if spec is None or not spec.submodule_search_locations:
         return None
@@ -86,9 +94,9 @@ def _repair_pocl_cpu_name() -> str | None:
     ptr = func()
     current = ctypes.string_at(ptr).decode() if ptr else ""
     libc.free(ptr)
-    if current != "generic":
+    if current != "generic" and wanted is None:
         return None
-    name = _host_llvm_cpu()
+    name = wanted or _host_llvm_cpu()
     _pocl_cpu_name_buffer = ctypes.create_string_buffer(name.encode())
     strdup = ctypes.cast(libc.strdup, ctypes.c_void_p).value
     addr = ctypes.cast(func, ctypes.c_void_p).value
@@ -145,7 +153,11 @@ def _pick_platform(cl, wanted: str | None):
 
 
 class OpenCLBackend:
-    def __init__(self, platform: str | None = None):
+    def __init__(self, platform: str | None = None, lcs_masks: int | None = None):
+        """The first device (a GPU where there is one) of `platform` (a name or part of one;
+        None: the first platform with a device). `lcs_masks` forces the LCS kernel's
+        vector width (16, 8 or 0 for scalar); by default a CPU takes the widest whose
+        build passes the LCS self-check, a GPU the scalar kernel."""
         import pyopencl as cl
 
         self.cl = cl
@@ -165,26 +177,43 @@ class OpenCLBackend:
         self._programs: dict[tuple[str, str], object] = {}
         self._kernels: dict[tuple[str, str, str], object] = {}
         self._lock = threading.RLock()  # kernel objects hold their arguments: one caller at a time
+        self.lcs_masks = lcs_masks if lcs_masks is not None else (None if self.kind == "cpu" else 0)
+        self.lcs_masks_refused: dict[int, str] = {}  # width -> what its build got wrong
 
     def __repr__(self) -> str:
         return f"OpenCLBackend({self.platform_name!r})"
 
     # --- programs -----------------------------------------------------------------
 
-    def default_options(self) -> str:
+    def default_options(self, source_filename: str | None = None) -> str:
         opts = []
         if self.has_fp64:
             opts.append("-DHAVE_FP64=1")
-        if self.kind == "cpu":
-            opts.append("-DRELIC_VECTOR_MASKS=1")
+        if source_filename == "lcs.cl":
+            opts.append(f"-DRELIC_VECTOR_MASKS={self._lcs_width()}")
         return " ".join(opts)
+
+    def _lcs_width(self) -> int:
+        """The LCS kernel's vector width: on a CPU, 16 then 8 are built and self-checked,
+        and the first that agrees with the reference is kept (0, scalar, if neither)."""
+        with self._lock:
+            if self.lcs_masks is None:
+                from .selfcheck import check_family
+                for width in (16, 8):
+                    self.lcs_masks = width
+                    why = check_family(self, "lcs")
+                    if why is None:
+                        return width
+                    self.lcs_masks_refused[width] = why
+                self.lcs_masks = 0
+            return self.lcs_masks
 
     def program(self, source_filename: str, options: str | None = None):
         """The built program of a kernel source, compiled once per process.
 
         `source_filename` names a file of relicgpu.kernels.opencl (e.g. "lcs.cl")
         or is a path to any .cl file; `options` defaults to `default_options()`."""
-        options = self.default_options() if options is None else options
+        options = self.default_options(str(source_filename)) if options is None else options
         key = (str(source_filename), options)
         with self._lock:
             prog = self._programs.get(key)
@@ -199,10 +228,11 @@ class OpenCLBackend:
             return prog
 
     def kernel(self, source_filename: str, name: str):
-        key = (source_filename, self.default_options(), name)
+        options = self.default_options(source_filename)
+        key = (source_filename, options, name)
         k = self._kernels.get(key)
         if k is None:
-            k = self.cl.Kernel(self.program(source_filename), name)
+            k = self.cl.Kernel(self.program(source_filename, options), name)
             self._kernels[key] = k
         return k
 

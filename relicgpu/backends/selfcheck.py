@@ -1,0 +1,218 @@
+"""Self-check before trust: every kernel family of a backend against the NumPy reference.
+
+A compiler can get a kernel wrong on one CPU and right on the next (PoCL's LLVM 14
+folded 16-wide float compares wrongly for CPUs without AVX-512: LCS lengths off in
+49 of 64 pairs). So before a backend is used in a process, `run(backend)` feeds
+each family small inputs chosen to reach the places where kernels go wrong (LCS
+sequences crossing 64-column words, nearest-neighbour ties and exact hits, faces of
+zero area) and compares with `relicgpu.backends.numpy` under the tolerances the
+kernel tests use. It takes well under a second once the kernels are compiled.
+
+`run` returns {family: None or what disagreed}; `relicgpu.backends.get_backend`
+refuses a backend with any disagreement.
+"""
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from . import numpy as ref
+
+FAMILIES = ("normals", "curvature", "flags", "lcs", "nearest", "covariance", "mosaic")
+
+LCS_LENGTHS = (1, 63, 64, 65, 127, 129, 200)
+LCS_EPS = 0.1
+
+
+def _first_bad(ok: np.ndarray, got, want) -> str:
+    i = int(np.flatnonzero(~np.asarray(ok).ravel())[0])
+    g, w = np.asarray(got).ravel(), np.asarray(want).ravel()
+    return f"{int((~np.asarray(ok)).sum())} of {np.asarray(ok).size} values wrong (e.g. {g[i].item()!r} for {w[i].item()!r})"
+
+
+def _disagreement(ok, got, want) -> str | None:
+    return None if np.all(ok) else _first_bad(ok, got, want)
+
+
+# --- inputs, made once per process ---------------------------------------------------
+
+@functools.lru_cache(maxsize=None)
+def _mesh():
+    """A bumpy sheet far from the origin plus faces of zero area (collinear, repeated vertex)."""
+    rng = np.random.default_rng(1)
+    n = 9
+    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    z = 0.05 * np.sin(7 * x) * np.cos(5 * y) + 0.002 * rng.random(x.shape)
+    v = np.stack([x.ravel(), y.ravel(), z.ravel()], 1) * 40.0 + [300.0, -200.0, 50.0]
+    i = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    f = np.concatenate([np.stack([i, i + n, i + 1], 1), np.stack([i + 1, i + n, i + n + 1], 1)])
+    degenerate = np.array([[0, 1, 2], [0, 0, 1], [5, 5, 5]])  # collinear grid points, repeated vertices
+    f = np.concatenate([f, degenerate]).astype(np.int32)
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    key = np.sort(edges, 1)
+    owner = np.tile(np.arange(len(f)), 3)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    key, owner = key[order], owner[order]
+    same = np.all(key[1:] == key[:-1], 1)
+    edge_faces = np.stack([owner[:-1][same], owner[1:][same]], 1).astype(np.int32)
+    return v, f, edge_faces
+
+
+@functools.lru_cache(maxsize=None)
+def _curve():
+    """A closed wobbly curve, then a run of identical points and an exactly straight run."""
+    t = np.linspace(0, 2 * np.pi, 160, endpoint=False)
+    c = np.stack([np.cos(t) * (3 + 0.4 * np.sin(5 * t)), np.sin(t) * 3, 0.7 * np.sin(3 * t)], 1)
+    same = np.tile([[1.0, 2.0, 3.0]], (12, 1))
+    line = np.stack([np.arange(24.0), 2 * np.arange(24.0), np.zeros(24)], 1)
+    return c, same, line
+
+
+@functools.lru_cache(maxsize=None)
+def _lcs_case():
+    """Sequences whose lengths straddle 64-column words, with float32 values: random ones
+    and ones of three levels (long common runs carry across words). Exact answers."""
+    rng = np.random.default_rng(2)
+    seqs = [rng.random(n) for n in LCS_LENGTHS]
+    seqs += [rng.integers(0, 3, n) / 3.0 for n in LCS_LENGTHS[1:]]
+    seqs = [np.asarray(s, np.float32).astype(np.float64) for s in seqs]
+    values = np.concatenate(seqs)
+    offsets = np.concatenate([[0], np.cumsum([len(s) for s in seqs])]).astype(np.int64)
+    k = len(seqs)
+    pairs = np.array([(i, j) for i in range(k) for j in range(k) if (i < len(LCS_LENGTHS)) == (j < len(LCS_LENGTHS))],
+                     np.int32)
+    want = ref.lcs_lengths(values, offsets, values, offsets, pairs, LCS_EPS)
+    return values, offsets, pairs, want
+
+
+@functools.lru_cache(maxsize=None)
+def _points():
+    """Targets on a grid (equidistant ties), duplicated points, sources on targets,
+    midway between them, and far outside."""
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(*[np.arange(6.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    target = np.concatenate([g, g[:20], rng.random((300, 3)) * 5])
+    source = np.concatenate([g[::7], g[:-1] + 0.5, rng.random((400, 3)) * 5, [[40.0, -30.0, 9.0]]])
+    return source + 100.0, target + 100.0
+
+
+# --- the families ------------------------------------------------------------------
+
+def _check_normals(be) -> str | None:
+    v, f, edge_faces = _mesh()
+    n, a = be.face_normals(v, f)
+    n_ref, a_ref = ref.face_normals(v, f)
+    p = v[f]
+    edge = np.sqrt(np.max([np.sum((p[:, i] - p[:, (i + 1) % 3]) ** 2, 1) for i in range(3)], axis=0))
+    size = np.linalg.norm(v.max(0) - v.min(0))
+    bad = _disagreement(np.abs(a - a_ref) <= 1e-5 * size * edge + 1e-5 * a_ref, a, a_ref)
+    if bad:
+        return "face areas: " + bad
+    pos = a_ref > 0
+    err = np.linalg.norm(n - n_ref, axis=1)
+    ok = np.where(pos, err <= 1e-5 * size * edge / np.where(pos, a_ref, 1) + 1e-5, np.all(n == 0, 1) & (a == 0))
+    if not ok.all():
+        return "face normals: " + _first_bad(ok, err, np.zeros_like(err))
+    ang, ang_ref = be.edge_angles(n_ref, edge_faces), ref.edge_angles(n_ref, edge_faces)
+    bad = _disagreement(np.abs(ang - ang_ref) <= 1e-4, ang, ang_ref)
+    return "edge angles: " + bad if bad else None
+
+
+def _check_curvature(be) -> str | None:
+    fp64 = getattr(be, "real", np.float64) == np.float64
+    tol = 1e-9 if fp64 else 1e-3
+    for pts, k, stride in zip(_curve(), (4, 3, 3), (8, 1, 2)):
+        got, want = be.contour_features(pts, k, stride), ref.contour_features(pts, k, stride)
+        if got.shape != want.shape:
+            return f"contour features: shape {got.shape} for {want.shape}"
+        ok = np.abs(got - want) <= tol * (np.abs(want) + 1)
+        ok[:, 2] |= np.abs(want[:, 1]) < 1e-3  # torsion is ill-conditioned where curvature vanishes
+        bad = _disagreement(ok, got, want)
+        if bad:
+            return "contour features: " + bad
+    return None
+
+
+def _check_flags(be) -> str | None:
+    values, _, _, _ = _lcs_case()
+    b = np.concatenate([values[200:450], [0.375, 0.625, 0.4]]).astype(np.float32).astype(np.float64)
+    a = np.concatenate([values[:200], b[-3:] + LCS_EPS, b[-3:] - LCS_EPS])  # at eps, to float64 rounding
+    got, want = be.flag_matrix(a, b, LCS_EPS), ref.flag_matrix(a, b, LCS_EPS)
+    return _disagreement(got == want, got, want)
+
+
+def _check_lcs(be) -> str | None:
+    values, offsets, pairs, want = _lcs_case()
+    got = np.asarray(be.lcs_lengths(values, offsets, values, offsets, pairs, LCS_EPS))
+    return _disagreement(got == want, got, want)
+
+
+def _check_nearest(be) -> str | None:
+    source, target = _points()
+    size = np.linalg.norm(target.max(0) - target.min(0))
+    _, d_ref = ref.nearest_neighbors(source, target)
+    for what, (idx, d) in (("nearest_neighbors", be.nearest_neighbors(source, target)),
+                           ("nearest_index", be.nearest_index(target).query(source))):
+        idx = np.asarray(idx)
+        if idx.shape != d_ref.shape or idx.min() < 0 or idx.max() >= len(target):
+            return f"{what}: indices out of range"
+        bad = _disagreement(np.abs(d - d_ref) <= 1e-6 * size, d, d_ref)
+        if bad:
+            return f"{what} distances: " + bad
+        true_d = np.linalg.norm(source - target[idx], axis=1)
+        bad = _disagreement(np.abs(true_d - d_ref) <= 1e-6 * size, true_d, d_ref)
+        if bad:
+            return f"{what} indices (not a nearest point): " + bad
+    return None
+
+
+def _check_covariance(be) -> str | None:
+    rng = np.random.default_rng(4)
+    s = rng.random((500, 3)) * 10 + 50
+    t = s @ np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]]).T + [1.0, -2.0, 3.0] + 1e-3 * rng.random((500, 3))
+    w = rng.random(500)
+    w[::5] = 0
+    fp64 = getattr(be, "real", np.float64) == np.float64
+    tol = 1e-9 if fp64 else 1e-4
+    for weights in (None, w):
+        got, want = be.cross_covariance(s, t, weights), ref.cross_covariance(s, t, weights)
+        for name, g, x, scale in zip(("source centroid", "target centroid", "covariance", "weight sum"),
+                                     got, want, (60.0, 60.0, np.abs(want[2]).max(), want[3])):
+            bad = _disagreement(np.abs(np.asarray(g) - x) <= tol * scale, g, x)
+            if bad:
+                return f"cross_covariance {name}: " + bad
+    return None
+
+
+def _check_mosaic(be) -> str | None:
+    from .. import mosaic  # the image kernels are reached through relicgpu.mosaic's functions
+
+    rng = np.random.default_rng(5)
+    img = rng.random((37, 45)).astype(np.float32)
+    got, want = mosaic.led(img, 3, be), mosaic.led(img, 3, "numpy")
+    bad = _disagreement(np.abs(got - want) <= 1e-5, got, want)
+    if bad:
+        return "local edge density: " + bad
+    levels = rng.integers(0, 16, (30, 41)).astype(np.float64)
+    got, want = mosaic.block_entropy(levels, 7, 16, be), mosaic.block_entropy(levels, 7, 16, "numpy")
+    bad = _disagreement(np.abs(got - want) <= 1e-4, got, want)
+    return "block entropy: " + bad if bad else None
+
+
+_CHECKS = {"normals": _check_normals, "curvature": _check_curvature, "flags": _check_flags, "lcs": _check_lcs,
+           "nearest": _check_nearest, "covariance": _check_covariance, "mosaic": _check_mosaic}
+
+
+def check_family(backend, family: str) -> str | None:
+    """None when `backend` agrees with the reference on `family`, else what disagreed
+    (an exception inside a kernel counts as a disagreement)."""
+    try:
+        return _CHECKS[family](backend)
+    except Exception as exc:  # a kernel that fails to build or run is as untrustworthy as a wrong one
+        return f"{type(exc).__name__}: {exc}"
+
+
+def run(backend) -> dict[str, str | None]:
+    """{family: None if it agrees with the NumPy reference, else what disagreed}."""
+    return {family: check_family(backend, family) for family in FAMILIES}
