@@ -25,7 +25,6 @@ import dataclasses
 import hashlib
 import json
 import math
-import os
 import pickle
 import sys
 import time
@@ -34,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Fragment, FragmentError, atomic_write_bytes, atomic_write_json, load_directory, load_fragment
+from .io import Batch, Fragment, FragmentError, atomic_write_bytes, atomic_write_json, read_batch
 from .icp import apply, invert
 from .params import Params
 
@@ -91,6 +90,9 @@ class Assembly:
     stats: dict = field(default_factory=dict)  # counts for reports (not written to assembly.json)
     screen_scores: np.ndarray | None = None  # (n,n) screening score of every fragment pair
     candidates: list = field(default_factory=list)  # (i, j) pairs that got the full match
+    files: list = field(default_factory=list)  # the file name of each fragment (default: its name)
+    skipped: list = field(default_factory=list)  # files and crumbs left out while loading, with why
+    notes: list = field(default_factory=list)  # other loading decisions (files split into fragments)
 
     @property
     def n_groups(self) -> int:
@@ -105,14 +107,17 @@ class Assembly:
     def to_dict(self) -> dict:
         return {
             "version": 1,
-            "fragments": [{"file": name, "pose": None if pose is None else np.asarray(pose).tolist(), "group": int(g)}
-                          for name, pose, g in zip(self.names, self.poses, self.groups)],
+            "fragments": [{"name": name, "file": file, "pose": None if pose is None else np.asarray(pose).tolist(),
+                           "group": int(g)}
+                          for name, file, pose, g in zip(self.names, self.files or self.names, self.poses, self.groups)],
             "matches": [{"a": self.names[m.a], "b": self.names[m.b], "transform": m.transform.tolist(),
                          "score": float(m.score), "rmse": float(m.rmse), "overlap": float(m.overlap),
                          "used": bool(m.used)} for m in self.matches],
             "backend": self.backend,
             "engine": self.engine,
             "timings": {k: round(float(v), 4) for k, v in self.timings.items()},
+            "skipped": list(self.skipped),
+            "notes": list(self.notes),
         }
 
     def to_json(self) -> str:
@@ -682,20 +687,20 @@ def refine_poses(pose: list, group: list[int], used: list[Edge], samples: list,
 
 # --- the whole job -----------------------------------------------------------------
 
-def _load(fragments_or_dir) -> list[Fragment]:
-    if isinstance(fragments_or_dir, (str, os.PathLike)):
-        frags = load_directory(fragments_or_dir)
-    else:
-        frags = [f if isinstance(f, Fragment) else load_fragment(f) for f in fragments_or_dir]
-    if not frags:
-        raise FragmentError("no fragments to assemble")
+def _load(fragments_or_dir) -> Batch:
+    """The fragments of a directory, a list of files and Fragments, or a Batch (see io.read_batch):
+    a file that cannot be read is skipped, not fatal; no fragment at all is."""
+    batch = read_batch(fragments_or_dir)
+    if not batch.fragments:
+        why = f" ({batch.skipped[0]['reason']})" if batch.skipped else ""
+        raise FragmentError(f"no fragments to assemble{why}")
     seen: dict[str, str] = {}
-    for f in frags:
+    for f in batch.fragments:
         if f.name in seen:
             raise FragmentError(f"{f.source or f.name}: two fragments are named {f.name!r} "
                                 f"(also {seen[f.name]}); names must be unique")
         seen[f.name] = f.source or f.name
-    return frags
+    return batch
 
 
 def common_scale(fragments: list[Fragment], params: Params) -> float:
@@ -718,9 +723,10 @@ def _bar(total: int, show: bool, desc: str):
 def assemble(fragments_or_dir, params: Params | None = None, backend="auto", engine="local", workers=None,
              cache_dir=None, progress=True, out_dir=None, address: str | None = None,
              top_k: int = TOP_K, gpus_per_task: float | None = None, objects=None) -> "Assembly":
-    """Match and assemble a directory (or list) of fragments.
+    """Match and assemble a directory (or list, or io.Batch) of fragments.
 
-    Returns an Assembly; with out_dir, also writes assembly.json, assembly.glb and the
+    Files that cannot be read are skipped and crumbs dropped (io.read_batch); the result's
+    `skipped` and `notes` say which. Returns an Assembly; with out_dir, also writes assembly.json, assembly.glb and the
     merged STL(s) there, and caches finished work in out_dir/cache (or cache_dir).
     engine: "local" or "ray" (address: a Ray cluster to join, else a local one starts;
     gpus_per_task: GPUs a Ray task takes where there are GPUs, default 1).
@@ -733,7 +739,8 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     params = params or Params()
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    fragments = _load(fragments_or_dir)
+    batch = _load(fragments_or_dir)
+    fragments = batch.fragments
     n = len(fragments)
     timings["load"] = time.perf_counter() - t_start
     be = resolve(backend)
@@ -855,7 +862,8 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     stats.update(accepted=len(edges), used=len(used), cache_hits=cache.hits, cache_writes=cache.writes,
                  groups=len(set(groups)), placed=sum(p is not None for p in poses))
     timings["total"] = time.perf_counter() - t_start
-    result = Assembly(names, poses, groups, matches, timings, backend_name, eng.name, stats, scores, candidates)
+    result = Assembly(names, poses, groups, matches, timings, backend_name, eng.name, stats, scores, candidates,
+                      [f.file for f in fragments], list(batch.skipped), list(batch.notes))
     if out_dir is not None:
         t0 = time.perf_counter()
         write_outputs(result, fragments, out_dir)
@@ -1021,10 +1029,14 @@ def cli_main(args) -> int:
         raise CliError(f"{src}: not a directory")
     if Path(args.out).resolve() == src.resolve():
         raise CliError(f"{args.out}: the output directory must not be the input directory")
+    batch = read_batch(src)
+    for line in batch.messages():  # every file or crumb left out, even with --quiet
+        print(line, file=sys.stderr)
+    batch.require(2)
     if args.group:
         from .grouping import assemble_grouped
 
-        grouping, _ = assemble_grouped(src, args.out, classifier=args.classifier, backend=args.backend,
+        grouping, _ = assemble_grouped(batch, args.out, classifier=args.classifier, backend=args.backend,
                                        engine=args.engine, workers=args.workers, cache_dir=args.cache_dir,
                                        progress=not args.quiet, address=args.address, top_k=args.top_k,
                                        gpus_per_task=args.gpus_per_task)
@@ -1032,7 +1044,7 @@ def cli_main(args) -> int:
             f"wrote {Path(args.out) / 'assembly.json'}, groups.json, object_<k>/")
         return 0
     try:
-        result = assemble(src, backend=args.backend, engine=args.engine, workers=args.workers,
+        result = assemble(batch, backend=args.backend, engine=args.engine, workers=args.workers,
                           cache_dir=args.cache_dir, progress=not args.quiet, out_dir=args.out,
                           address=args.address, top_k=args.top_k, gpus_per_task=args.gpus_per_task)
     except BackendError as exc:

@@ -46,6 +46,7 @@ objects were meshed.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import sys
 import time
 from dataclasses import dataclass, field
@@ -53,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Fragment, FragmentError, atomic_write_bytes, atomic_write_json
+from .io import Batch, Fragment, FragmentError, atomic_write_bytes, atomic_write_json, read_batch
 
 DESCRIPTOR_NAMES = (
     "kmax_q25", "kmax_q50", "kmax_q75", "kmin_q25", "kmin_q50", "kmin_q75",
@@ -222,6 +223,9 @@ class Grouping:
     scores: dict = field(default_factory=dict)  # extra figures of the method
     method: str = "average"
     timings: dict = field(default_factory=dict)
+    files: list = field(default_factory=list)  # the file name of each fragment (default: its name)
+    skipped: list = field(default_factory=list)  # files and crumbs left out while loading (io.Batch)
+    notes: list = field(default_factory=list)  # other loading decisions
 
     @property
     def groups(self) -> list[list[str]]:
@@ -230,9 +234,11 @@ class Grouping:
     def to_dict(self) -> dict:
         return {"version": 1, "method": self.method,
                 "groups": self.groups,
-                "fragments": [{"file": n, "group": int(l)} for n, l in zip(self.names, self.labels)],
+                "fragments": [{"name": n, "file": f, "group": int(l)}
+                              for n, f, l in zip(self.names, self.files or self.names, self.labels)],
                 "silhouette": None if not np.isfinite(self.silhouette) else float(self.silhouette),
-                "timings": {k: round(float(v), 4) for k, v in self.timings.items()}}
+                "timings": {k: round(float(v), 4) for k, v in self.timings.items()},
+                "skipped": list(self.skipped), "notes": list(self.notes)}
 
 
 # --- descriptors -------------------------------------------------------------
@@ -675,7 +681,7 @@ def group_fragments(fragments: list[Fragment], n_groups: int | None = None, dist
     labels, sil = cluster(1.0 - p, n_groups, LINK_CUT if distance is None else distance)
     t2 = time.perf_counter()
     return Grouping([fr.name for fr in fragments], labels, sil, {}, "average",
-                    {"describe": t1 - t0, "cluster": t2 - t1})
+                    {"describe": t1 - t0, "cluster": t2 - t1}, [fr.file for fr in fragments])
 
 
 def heap_probability(descriptors: list[Descriptor]) -> np.ndarray:
@@ -685,7 +691,7 @@ def heap_probability(descriptors: list[Descriptor]) -> np.ndarray:
 
 def group(fragments, n_groups: int | None = None, **kw) -> list[list[str]]:
     """Fragments (a list, or a directory) -> groups of fragment names, largest first."""
-    return group_fragments(_load(fragments), n_groups, **kw).groups
+    return group_fragments(_load(fragments).fragments, n_groups, **kw).groups
 
 
 def adjusted_rand_index(truth, pred) -> float:
@@ -706,11 +712,10 @@ def adjusted_rand_index(truth, pred) -> float:
     return float((sum_cells - expected) / (top - expected))
 
 
-def _load(fragments_or_dir) -> list[Fragment]:
-    if isinstance(fragments_or_dir, (str, Path)):
-        from .io import load_directory
-        return load_directory(fragments_or_dir)
-    return list(fragments_or_dir)
+def _load(fragments_or_dir) -> Batch:
+    """A directory, a list of files and Fragments, or a Batch -> a Batch (io.read_batch): a file
+    that cannot be read is skipped, a file of several bodies split, crumbs dropped."""
+    return read_batch(fragments_or_dir)
 
 
 # --- supervised: a small PointNet ------------------------------------------------
@@ -933,14 +938,16 @@ def assemble_grouped(fragments_or_dir, out_dir=None, n_groups: int | None = None
     """
     from .assembly import assemble
 
-    fragments = _load(fragments_or_dir)
+    batch = _load(fragments_or_dir)
+    fragments = batch.fragments
     if classifier is not None:
         names, _ = (classifier if isinstance(classifier, Classifier) else Classifier.load(classifier)).predict(fragments)
         classes = sorted(set(names), key=lambda c: (-names.count(c), c))
         grouping = Grouping([fr.name for fr in fragments], np.array([classes.index(c) for c in names]),
-                            float("nan"), method="classifier")
+                            float("nan"), method="classifier", files=[fr.file for fr in fragments])
     else:
         grouping = group_fragments(fragments, n_groups)
+    grouping = dataclasses.replace(grouping, skipped=list(batch.skipped), notes=list(batch.notes))
     by_name = {fr.name: fr for fr in fragments}
     results, doc_fragments, doc_matches, timings = [], [], [], {}
     offset = 0
@@ -949,7 +956,8 @@ def assemble_grouped(fragments_or_dir, out_dir=None, n_groups: int | None = None
         members = [by_name[n] for n in names]
         if len(members) == 1:
             results.append(None)
-            doc_fragments.append({"file": names[0], "pose": np.eye(4).tolist(), "group": offset, "object": k})
+            doc_fragments.append({"name": names[0], "file": members[0].file, "pose": np.eye(4).tolist(),
+                                  "group": offset, "object": k})
             offset += 1
             continue
         res = assemble(members, out_dir=sub_out, **assemble_kw)
@@ -970,7 +978,7 @@ def assemble_grouped(fragments_or_dir, out_dir=None, n_groups: int | None = None
             "backend": first.backend if first else None, "engine": first.engine if first else None,
             "timings": {**{k: round(v, 4) for k, v in timings.items()},
                         **{f"group_{k}": round(float(v), 4) for k, v in grouping.timings.items()}},
-            "objects": grouping.groups})
+            "objects": grouping.groups, "skipped": grouping.skipped, "notes": grouping.notes})
     return grouping, results
 
 
@@ -1025,20 +1033,24 @@ def cli_main(args, name="group") -> int:
         raise CliError(f"{args.out}: the output directory must not be the input directory")
     if args.groups is not None and args.groups < 1:
         raise CliError(f"--groups must be at least 1, got {args.groups}")
-    fragments = _load(src)
+    batch = _load(src)
+    for line in batch.messages():  # every file or crumb left out, even with --quiet
+        print(line, file=sys.stderr)
+    batch.require(2)
+    fragments = batch.fragments
     if args.classifier:
         clf = Classifier.load(args.classifier)
         pred, prob = clf.predict(fragments)
         classes = sorted(set(pred), key=lambda c: (-pred.count(c), c))
         doc = {"version": 1, "method": "classifier", "classes": classes,
                "groups": [[fr.name for fr, p in zip(fragments, pred) if p == c] for c in classes],
-               "fragments": [{"file": fr.name, "group": classes.index(p), "label": p,
+               "fragments": [{"name": fr.name, "file": fr.file, "group": classes.index(p), "label": p,
                               "probability": float(pr.max())} for fr, p, pr in zip(fragments, pred, prob)]}
     else:
         if args.distance is not None and not 0.0 < args.distance < 1.0:
             raise CliError(f"--distance must lie between 0 and 1, got {args.distance}")
-        g = group_fragments(fragments, args.groups, args.distance, progress=not args.quiet)
-        doc = g.to_dict()
+        doc = group_fragments(fragments, args.groups, args.distance, progress=not args.quiet).to_dict()
+    doc.update(skipped=batch.skipped, notes=batch.notes)
     atomic_write_json(Path(args.out) / "groups.json", doc)
     sizes = [len(x) for x in doc["groups"]]
     log(f"{len(fragments)} fragments in {len(sizes)} group(s) of sizes {sizes}; wrote {Path(args.out) / 'groups.json'}")

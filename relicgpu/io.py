@@ -8,6 +8,7 @@ beside the target, then a rename), never over an input.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import tempfile
@@ -19,6 +20,11 @@ import numpy as np
 
 MESH_SUFFIXES = {".stl", ".ply", ".obj", ".off", ".glb", ".gltf"}
 POINT_SUFFIXES = {".xyz", ".asc", ".txt", ".pcd", ".npy"}
+# LAS/LAZ lidar clouds: no reader here (laspy is not a dependency); named so the message says so
+LIDAR_SUFFIXES = {".las", ".laz"}
+FRAGMENT_SUFFIXES = MESH_SUFFIXES | POINT_SUFFIXES
+# A body of less than this fraction of the largest body's area in its file is a crumb: dropped.
+CRUMB_FRACTION = 0.01
 
 
 class FragmentError(ValueError):
@@ -27,12 +33,17 @@ class FragmentError(ValueError):
 
 @dataclass(frozen=True, eq=False)
 class Fragment:
-    """A scanned fragment: a triangle mesh with a name (the file stem)."""
+    """A scanned fragment: a triangle mesh with a name (its id: see `fragment_ids`)."""
     name: str
     vertices: np.ndarray  # (V,3) float64
     faces: np.ndarray  # (F,3) int32
     source: str | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def file(self) -> str:
+        """The name of the file it was read from (with its extension), else its name."""
+        return Path(self.source).name if self.source else self.name
 
     @property
     def size(self) -> float:
@@ -44,7 +55,7 @@ class Fragment:
     def transformed(self, matrix: np.ndarray) -> "Fragment":
         m = np.asarray(matrix, np.float64)
         v = self.vertices @ m[:3, :3].T + m[:3, 3]
-        return Fragment(self.name, v, self.faces, self.source, self.notes)
+        return dataclasses.replace(self, vertices=v)
 
     def to_trimesh(self):
         import trimesh
@@ -52,8 +63,49 @@ class Fragment:
 
 
 def fragment_from_arrays(name: str, vertices, faces, source: str | None = None) -> Fragment:
-    """Check and clean raw arrays into a Fragment (same rules as for files)."""
+    """Check and clean raw arrays into one Fragment (same rules as for files).
+
+    A mesh of several bodies gives its largest body, and a note says so (see
+    `fragments_from_arrays` for every body).
+    """
+    frags, skipped, notes = fragments_from_arrays(name, vertices, faces, source)
+    return _largest_of(frags, skipped, notes, source or name)
+
+
+def fragments_from_arrays(name: str, vertices, faces, source: str | None = None,
+                          ) -> tuple[list[Fragment], list[dict], list[str]]:
+    """Check and clean raw arrays into one Fragment per body.
+
+    Parameters
+    ----------
+    name : str
+        The fragment id; bodies of a mesh that holds several are named ``name#k``.
+    vertices, faces : array_like
+        (N, 3) coordinates and (M, 3) vertex indices.
+    source : str, optional
+        The file the arrays come from (names it in messages and in ``Fragment.file``).
+
+    Returns
+    -------
+    fragments : list of Fragment
+        The bodies kept, largest first.
+    skipped : list of dict
+        One ``{"file", "name", "reason"}`` per crumb dropped (see `split_bodies`).
+    notes : list of str
+        The decisions taken on this mesh (empty for a mesh of one body).
+
+    Raises
+    ------
+    FragmentError
+        Malformed arrays, or no face of non-zero area.
+    """
     label = source or name
+    v, f = _checked_arrays(label, vertices, faces)
+    return split_bodies(name, label, source, [(v, f)])
+
+
+def _checked_arrays(label: str, vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) finite float64 vertices and (M, 3) int64 faces that index them, or a FragmentError."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3:
@@ -67,9 +119,43 @@ def fragment_from_arrays(name: str, vertices, faces, source: str | None = None) 
         raise FragmentError(f"{label}: {bad} vertices have NaN or infinite coordinates")
     if f.min() < 0 or f.max() >= len(v):
         raise FragmentError(f"{label}: faces refer to vertices that do not exist (index {int(f.max())} of {len(v)})")
-    f = f.astype(np.int64)
-    notes: list[str] = []
+    return v, f.astype(np.int64)
 
+
+def split_bodies(name: str, label: str, source: str | None, parts) -> tuple[list[Fragment], list[dict], list[str]]:
+    """Split meshes into bodies, drop the crumbs and clean each body kept into a Fragment.
+
+    A crumb is a body of less than CRUMB_FRACTION of the largest body's area (over all
+    `parts`, e.g. the meshes of one GLB scene). Bodies are numbered by decreasing area;
+    when more than one is kept they are named ``name#1``, ``name#2``, ... and the crumbs
+    take the numbers after them. Returns (fragments, skipped, notes) as
+    `fragments_from_arrays`.
+    """
+    bodies = [(v, f[faces]) for v, f in parts for faces in _body_faces(v, f)]
+    areas = np.array([_area(v, f) for v, f in bodies])
+    order = np.argsort(-areas, kind="stable")
+    largest = float(areas[order[0]])
+    if not largest > 0:
+        raise FragmentError(f"{label}: the mesh has no faces left after removing degenerate ones")
+    kept = [i for i in order if areas[i] >= CRUMB_FRACTION * largest]
+    ids = [name] if len(kept) == 1 else [f"{name}#{k}" for k in range(1, len(bodies) + 1)]
+    file = Path(source).name if source else name
+    frags = [_clean_body(ids[k], *bodies[i], label if len(kept) == 1 else f"{label} ({ids[k]})", source)
+             for k, i in enumerate(kept)]
+    skipped = [{"file": file, "name": f"{name}#{k + 1}",
+                "reason": f"{label}: body {k + 1} of {len(bodies)} is a crumb ({len(bodies[i][1])} faces, "
+                          f"{100 * areas[i] / largest:.2g}% of the largest body's area); dropped"}
+               for k, i in enumerate(order) if k >= len(kept)]
+    notes = []
+    if len(bodies) > 1:
+        notes.append(f"{label}: {len(bodies)} bodies: kept {len(kept)} ({', '.join(f.name for f in frags)}), "
+                     f"dropped {len(skipped)} crumb(s) under {100 * CRUMB_FRACTION:g}% of the largest body's area")
+    return frags, skipped, notes
+
+
+def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str | None) -> Fragment:
+    """One body's faces -> a Fragment: degenerate and duplicate faces and unused vertices removed."""
+    notes: list[str] = []
     # Degenerate faces: a repeated vertex index or zero area.
     cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     area2 = np.linalg.norm(cross, axis=1)
@@ -83,43 +169,64 @@ def fragment_from_arrays(name: str, vertices, faces, source: str | None = None) 
     drop = degenerate | duplicate
     if drop.any():
         msg = f"{label}: removed {int(degenerate.sum())} degenerate and {int((duplicate & ~degenerate).sum())} duplicate faces"
-        warnings.warn(msg, stacklevel=3)
+        warnings.warn(msg, stacklevel=5)
         notes.append(msg)
         f = f[~drop]
-    if len(f) == 0:
-        raise FragmentError(f"{label}: the mesh has no faces left after removing degenerate ones")
-
-    # Drop vertices no face uses, keep the order of the rest.
-    used = np.zeros(len(v), bool)
-    used[f.ravel()] = True
-    remap = np.cumsum(used) - 1
-    v, f = v[used], remap[f]
-
-    n_bodies = count_bodies(v, f)
-    if n_bodies > 1:
-        raise FragmentError(f"{label}: the mesh has {n_bodies} separate bodies; a fragment must be one piece (split it first)")
+    v, f = _used_vertices(v, f)
+    pieces = _body_faces(v, f)
+    if len(pieces) > 1:  # only degenerate faces held it together
+        f = f[max(pieces, key=lambda p: _area(v, f[p]))]
+        v, f = _used_vertices(v, f)
+        notes.append(f"{label}: fell apart into {len(pieces)} bodies once degenerate faces were removed; kept the largest")
     if not is_watertight(f):
         notes.append(f"{label}: the mesh is not watertight (open boundary); accepted, as scans often are")
     return Fragment(name, v, f.astype(np.int32), source, tuple(notes))
 
 
-def count_bodies(vertices: np.ndarray, faces: np.ndarray) -> int:
-    """Connected components of the faces, joining faces that share a vertex position."""
+def _used_vertices(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop vertices no face uses, keeping the order of the rest."""
+    used = np.zeros(len(v), bool)
+    used[f.ravel()] = True
+    remap = np.cumsum(used) - 1
+    return v[used], remap[f]
+
+
+def _area(v: np.ndarray, f: np.ndarray) -> float:
+    return 0.5 * float(np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum())
+
+
+def _largest_of(frags: list[Fragment], skipped: list[dict], notes: list[str], label: str) -> Fragment:
+    """The largest body of a file or mesh, its notes saying what else the file held."""
+    main = frags[0]
+    if len(frags) == 1 and not skipped:
+        return main
+    extra = (f"{label}: holds {len(frags) + len(skipped)} bodies; using the largest "
+             f"({len(main.faces)} faces) as {main.name!r}",)
+    return dataclasses.replace(main, notes=tuple(notes) + extra + main.notes)
+
+
+def _body_faces(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
+    """Face indices of each connected body (faces joined where they share a vertex position)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    if len(faces) == 0:
+        return []
     # Merge coincident vertices first: many formats (STL) store each triangle apart.
     _, inverse = np.unique(np.round(vertices, 12), axis=0, return_inverse=True)
     f = inverse.ravel()[faces]
-    n = int(f.max()) + 1
-    rows = np.repeat(np.arange(len(f)), 3)
-    graph = coo_matrix((np.ones(len(rows)), (rows, f.ravel())), shape=(len(f), n))
-    # faces x vertices incidence -> components over the bipartite graph
-    m = len(f)
-    from scipy.sparse import bmat
-    big = bmat([[None, graph], [graph.T, None]])
-    n_comp, labels = connected_components(big, directed=False)
-    return len(np.unique(labels[:m]))
+    n = len(inverse)
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    _, body = np.unique(labels[f[:, 0]], return_inverse=True)
+    order = np.argsort(body, kind="stable")
+    return np.split(order, np.cumsum(np.bincount(body))[:-1])
+
+
+def count_bodies(vertices: np.ndarray, faces: np.ndarray) -> int:
+    """Connected components of the faces, joining faces that share a vertex position."""
+    return len(_body_faces(np.asarray(vertices, np.float64), np.asarray(faces, np.int64)))
 
 
 def is_watertight(faces: np.ndarray) -> bool:
@@ -131,35 +238,78 @@ def is_watertight(faces: np.ndarray) -> bool:
 
 
 def load_fragment(path, name: str | None = None) -> Fragment:
-    """Read a mesh (or a point cloud, triangulated) into a checked, cleaned Fragment."""
+    """Read a mesh (or a point cloud, triangulated) into a checked, cleaned Fragment.
+
+    A file of several bodies (or a scene of several meshes) gives its largest body; its
+    notes say so. `load_fragments` gives every body.
+    """
+    frags, skipped, notes = load_fragments(path, name)
+    return _largest_of(frags, skipped, notes, str(path))
+
+
+def load_fragments(path, name: str | None = None) -> tuple[list[Fragment], list[dict], list[str]]:
+    """Read one file into a Fragment per body (or per mesh of a scene), crumbs dropped.
+
+    Parameters
+    ----------
+    path : path-like
+        A mesh (STL, PLY, OBJ, OFF, GLB/glTF) or point-cloud file.
+    name : str, optional
+        The id of the fragment (default: the file stem); bodies are ``name#k``.
+
+    Returns
+    -------
+    fragments, skipped, notes
+        As `fragments_from_arrays`.
+
+    Raises
+    ------
+    FragmentError
+        The file cannot be read; the message names the file and the fault.
+    """
     p = Path(path)
     label = str(p)
+    name = name or p.stem
     if not p.exists():
         raise FragmentError(f"{label}: no such file")
     if p.is_dir():
         raise FragmentError(f"{label}: is a directory, not a mesh file")
     suffix = p.suffix.lower()
+    if suffix in LIDAR_SUFFIXES:
+        raise FragmentError(f"{label}: LAS/LAZ point clouds are not supported here (no maintained reader such as "
+                            "laspy is installed); convert it to .ply, .pcd, .xyz or .npy")
     if suffix in POINT_SUFFIXES or (suffix == ".ply" and _ply_without_faces(p)):
         try:
             from . import pointcloud
         except ImportError as exc:  # the point-cloud stage is optional
             raise FragmentError(f"{label}: point clouds need relicgpu.pointcloud ({exc})") from exc
-        return pointcloud.load_point_cloud_fragment(p, name=name)
+        return [pointcloud.load_point_cloud_fragment(p, name=name)], [], []
     if suffix not in MESH_SUFFIXES:
         raise FragmentError(f"{label}: unknown format {suffix or '(no extension)'!r}; use STL, PLY, OBJ, OFF or GLB")
+    parts = [_checked_arrays(label, v, f) for v, f in _read_meshes(p, label)]
+    return split_bodies(name, label, label, parts)
+
+
+def _read_meshes(p: Path, label: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(vertices, faces) of each mesh of a file: one, or one per mesh of a GLB/glTF scene."""
     import trimesh
 
+    suffix = p.suffix.lower()
+    scene = suffix in (".glb", ".gltf")
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings():  # e.g. an OBJ whose .mtl is missing: the geometry is what counts
             warnings.simplefilter("ignore")
-            loaded = trimesh.load(str(p), process=False, force="mesh")
+            loaded = trimesh.load(str(p), process=False, **({} if scene else {"force": "mesh"}))
+            meshes = loaded.dump() if isinstance(loaded, trimesh.Scene) else [loaded]
     except Exception as exc:
         raise FragmentError(f"{label}: unreadable {suffix[1:].upper()} file ({type(exc).__name__}: {exc})") from None
-    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64)
-    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))))
-    if len(vertices) == 0 and len(faces) == 0:
+    out = [(np.asarray(m.vertices, np.float64), np.asarray(m.faces))
+           for m in meshes if len(getattr(m, "vertices", ())) and len(getattr(m, "faces", ()))]
+    if not out and not any(len(getattr(m, "vertices", ())) for m in meshes):
         raise FragmentError(f"{label}: unreadable or empty {suffix[1:].upper()} file (no vertices)")
-    return fragment_from_arrays(name or p.stem, vertices, faces, source=label)
+    if not out:
+        raise FragmentError(f"{label}: the mesh has no faces")
+    return out
 
 
 def _ply_without_faces(path: Path) -> bool:
@@ -179,15 +329,89 @@ def _ply_without_faces(path: Path) -> bool:
     return True
 
 
-def load_directory(directory) -> list[Fragment]:
-    """All fragment files of a directory (sorted by name)."""
+# --- a batch of files -------------------------------------------------------
+
+@dataclass
+class Batch:
+    """Fragments read from many files, and every file or body left out, with why.
+
+    ``skipped`` holds ``{"file", "reason"}`` per unreadable file and ``{"file", "name",
+    "reason"}`` per crumb; ``notes`` the other decisions (files split into several
+    fragments, degenerate faces removed, open meshes accepted). Both go into assembly.json
+    and groups.json, one line each on the terminal.
+    """
+    fragments: list[Fragment]
+    skipped: list[dict] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    def messages(self) -> list[str]:
+        """One terminal line per decision."""
+        return [f"skipped: {s['reason']}" for s in self.skipped] + [f"note: {n}" for n in self.notes]
+
+    def require(self, n: int = 2) -> None:
+        """Raise FragmentError when fewer than n fragments could be read."""
+        if len(self.fragments) < n:
+            unread = [s for s in self.skipped if "name" not in s]
+            raise FragmentError(f"only {len(self.fragments)} fragment(s) could be read, {n} are needed"
+                                + (f" ({len(unread)} file(s) skipped, first: {unread[0]['reason']})" if unread else ""))
+
+
+def fragment_ids(files) -> list[str]:
+    """The id of each file of a batch: its stem where no other file has that stem, else its
+    name with the extension (``a.ply`` and ``a.obj``), else the path as given."""
+    names = [Path(f).name for f in files]
+    stems = [Path(f).stem for f in files]
+    return [s if stems.count(s) == 1 else n if names.count(n) == 1 else str(f)
+            for f, n, s in zip(files, names, stems)]
+
+
+def fragment_files(directory) -> list[Path]:
+    """The fragment files of a directory, sorted by name (FragmentError when there are none)."""
     d = Path(directory)
     if not d.is_dir():
         raise FragmentError(f"{d}: not a directory")
-    files = sorted(p for p in d.iterdir() if p.suffix.lower() in MESH_SUFFIXES | POINT_SUFFIXES)
+    suffixes = FRAGMENT_SUFFIXES | LIDAR_SUFFIXES  # listed so that a LAS file is skipped with a reason
+    files = sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
     if not files:
         raise FragmentError(f"{d}: no fragment files (STL, PLY, OBJ, OFF, GLB, or point clouds) found")
-    return [load_fragment(p) for p in files]
+    return files
+
+
+def read_batch(fragments_or_dir) -> Batch:
+    """Read a directory, or a list of files and Fragments; a file that cannot be read is skipped.
+
+    Files are named by `fragment_ids`; Fragments given keep their names.
+    """
+    if isinstance(fragments_or_dir, Batch):
+        return fragments_or_dir
+    if isinstance(fragments_or_dir, (str, os.PathLike)):
+        items: list = fragment_files(fragments_or_dir)
+    else:
+        items = list(fragments_or_dir)
+    paths = [Path(x) for x in items if not isinstance(x, Fragment)]
+    ids = iter(fragment_ids(paths))
+    batch = Batch([])
+    for item in items:
+        if isinstance(item, Fragment):
+            batch.fragments.append(item)
+            continue
+        p = Path(item)
+        try:
+            with warnings.catch_warnings():  # what cleaning warns of is in the fragments' notes
+                warnings.simplefilter("ignore")
+                frags, skipped, notes = load_fragments(p, next(ids))
+        except FragmentError as exc:
+            batch.skipped.append({"file": p.name, "reason": str(exc)})
+            continue
+        batch.fragments += frags
+        batch.skipped += skipped
+        batch.notes += notes + [n for f in frags for n in f.notes]
+    return batch
+
+
+def load_directory(directory) -> list[Fragment]:
+    """All fragments of a directory's files (sorted by name); see `read_batch` for what is skipped."""
+    return read_batch(directory).fragments
 
 
 # --- atomic outputs --------------------------------------------------------

@@ -1,5 +1,9 @@
 """`relicgpu match A B -o OUT`: match two fragment files; writes OUT/match.json and
-OUT/match.glb (b moved onto a, two colours)."""
+OUT/match.glb (b moved onto a, two colours).
+
+A file of several bodies is matched by its largest body (crumbs and other bodies left
+out); the terminal and match.json's "notes" say so. A file that cannot be read stops
+the command with exit code 2 and one line naming the file and the fault."""
 from __future__ import annotations
 
 import sys
@@ -52,7 +56,8 @@ def cli_main(args) -> int:
         log(f"  {stage:>18}: {1000 * t:8.1f} ms")
     verdict = "match" if result.accepted else "no match"
     log(f"{verdict}: overlap {result.overlap:.2f}, rmse {result.rmse:.4g}, penetration {result.penetration:.3f} ({result.reason})")
-    doc = {"version": 1, "a": a.source, "b": b.source, "backend": backend.name, **result.to_dict()}
+    doc = {"version": 1, "a": a.source, "b": b.source, "backend": backend.name, **result.to_dict(),
+           "notes": list(a.notes + b.notes)}
     atomic_write_json(out / "match.json", doc)
     atomic_write_bytes(out / "match.glb", pair_glb(a, b, result.transform if result.accepted else np.eye(4)))
     log(f"wrote {out / 'match.json'} and {out / 'match.glb'}")

@@ -265,8 +265,9 @@ def test_assemble_small_synthetic_object(local_result, synth_dir):
     assert s.pair_precision >= 0.95
     assert result.n_groups == 1
     doc = result.to_dict()
-    assert set(doc) == {"version", "fragments", "matches", "backend", "engine", "timings"}
-    assert [f["file"] for f in doc["fragments"]] == [f.name for f in frags]
+    assert set(doc) == {"version", "fragments", "matches", "backend", "engine", "timings", "skipped", "notes"}
+    assert [f["name"] for f in doc["fragments"]] == [f.name for f in frags]
+    assert [f["file"] for f in doc["fragments"]] == [f.file for f in frags]  # issue 15: the file name as given
 
 
 def test_mixed_directory_of_two_objects_gives_two_groups(tmp_path):

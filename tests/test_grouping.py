@@ -241,11 +241,11 @@ def test_group_cli(tmp_path, mixture):
     assert main(["group", str(src), "-o", str(tmp_path / "out"), "--quiet"]) == 0
     doc = json.loads((tmp_path / "out" / "groups.json").read_text())
     truth = {f.name: l for f, l in zip(frags, labels)}
-    got = {e["file"]: e["group"] for e in doc["fragments"]}
+    got = {e["name"]: e["group"] for e in doc["fragments"]}
     _pure_and_few([truth[n] for n in got], list(got.values()))
     assert main(["group", str(src), "-o", str(tmp_path / "out2"), "--groups", "3", "--quiet"]) == 0
     doc = json.loads((tmp_path / "out2" / "groups.json").read_text())
-    got = {e["file"]: e["group"] for e in doc["fragments"]}
+    got = {e["name"]: e["group"] for e in doc["fragments"]}
     assert G.adjusted_rand_index([truth[n] for n in got], list(got.values())) >= 0.9
     assert main(["group", str(src), "-o", str(tmp_path / "o3"), "--distance", "1.5", "--quiet"]) == 2
     assert main(["group", str(tmp_path / "nowhere"), "-o", str(tmp_path / "o2"), "--quiet"]) == 2
@@ -300,7 +300,7 @@ def test_assemble_grouped_writes_objects(tmp_path):
     grouping, results = G.assemble_grouped(frags, tmp_path / "out", progress=False)
     assert len(results) == 2
     doc = json.loads((tmp_path / "out" / "assembly.json").read_text())
-    got = {e["file"]: e["object"] for e in doc["fragments"]}
+    got = {e["name"]: e["object"] for e in doc["fragments"]}
     assert G.adjusted_rand_index([obj[n] for n in got], list(got.values())) == pytest.approx(1.0)
     # assembled groups never mix objects
     pieces = {}

@@ -1,4 +1,6 @@
 """Loading: every fault a user can cause gives a FragmentError naming the file and the fault."""
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -56,11 +58,14 @@ def test_nan_coordinates(tmp_path):
 
 
 def test_several_bodies_says_how_many(tmp_path):
+    # issue 15: a file of several bodies no longer fails; load_fragment takes the largest and says so
     p = tmp_path / "two.stl"
     scene = trimesh.util.concatenate([_box(), _box().apply_translation([5, 0, 0]), _box().apply_translation([0, 9, 0])])
     scene.export(p)
-    with pytest.raises(FragmentError, match=r"two\.stl: the mesh has 3 separate bodies"):
-        load_fragment(p)
+    frag = load_fragment(p)
+    assert len(frag.faces) == 12
+    assert any(re.search(r"two\.stl: 3 bodies", n) for n in frag.notes)
+    assert any(re.search(r"two\.stl: holds 3 bodies; using the largest", n) for n in frag.notes)
 
 
 def test_degenerate_and_duplicate_faces_are_cleaned_with_a_warning():

@@ -18,7 +18,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..io import MESH_SUFFIXES, POINT_SUFFIXES
+from ..io import MESH_SUFFIXES, POINT_SUFFIXES, fragment_ids
 
 FRAGMENT_SUFFIXES = frozenset(MESH_SUFFIXES | POINT_SUFFIXES)
 ASSEMBLY_FILES = ("assembly.json", "assembly.glb", "merged.stl")
@@ -37,7 +37,7 @@ class AssemblyFileError(ValueError):
 
 @dataclass(frozen=True)
 class FragmentEntry:
-    name: str  # the id in the API: the file stem (the whole file name where stems collide)
+    name: str  # the id in the API: io.fragment_ids (the stem; the whole file name where stems collide)
     file: str  # file name inside fragments/
     path: Path  # resolved, inside the workspace
 
@@ -137,10 +137,8 @@ class Workspace:
                 continue
             if real.is_relative_to(self.root) and real.is_file():
                 files.append((p.name, real))
-        stems = [Path(n).stem for n, _ in files]
         entries = {}
-        for (file, real), stem in zip(files, stems):
-            name = stem if stems.count(stem) == 1 else file
+        for (file, real), name in zip(files, fragment_ids([n for n, _ in files])):
             entries[name] = FragmentEntry(name, file, real)
         return entries
 
@@ -198,11 +196,14 @@ def _is_dir_inside(p: Path, root: Path) -> bool:
 
 
 def _entry_for(file_ref, entries: dict[str, FragmentEntry]) -> FragmentEntry | None:
-    """Match a fragment reference of assembly.json (file name, stem, or a path) to a listed file."""
+    """Match a fragment reference of assembly.json (id, file name, stem, or a path) to a listed
+    file; a body `id#k` of a file of several bodies is that file's entry."""
     if not isinstance(file_ref, str) or not file_ref:
         return None
     if file_ref in entries:
         return entries[file_ref]
+    if "#" in file_ref and file_ref.rsplit("#", 1)[0] in entries:
+        return entries[file_ref.rsplit("#", 1)[0]]
     base = Path(file_ref.replace("\\", "/")).name
     for e in entries.values():
         if e.file == base:

@@ -1,0 +1,197 @@
+"""Scans from the field (issue 15, items 1, 4 and 5): files of several bodies are split and
+their crumbs dropped, unreadable files are skipped, every decision is written down, the
+common formats load, and fragments of one stem but different files get distinct names."""
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from relicgpu import synth
+from relicgpu.cli import main
+from relicgpu.io import fragment_ids, load_fragment, load_fragments, read_batch
+
+
+def _box(extents=(1, 2, 3), at=(0, 0, 0)):
+    return trimesh.creation.box(extents=extents).apply_translation(at)
+
+
+def _heap_mesh():
+    """A main body, a crumb (0.1% of its area) and a second large body, in one mesh."""
+    return trimesh.util.concatenate([_box(), _box((0.05, 0.05, 0.05), (4, 0, 0)), _box((1, 1, 2), (0, 6, 0))])
+
+
+def _garbage(path):
+    path.write_bytes(b"\x00\x01 not a mesh at all" * 3)
+    return path
+
+
+@pytest.fixture(scope="module")
+def pair_dir(tmp_path_factory):
+    """Two matching synthetic pieces (ply), the first with a crumb added, and an unreadable file."""
+    d = tmp_path_factory.mktemp("pair")
+    r = synth.generate("vase", pieces=2, seed=3, faces=600, progress=False)
+    a, b = r.fragments
+    crumb = _box((0.002, 0.002, 0.002), a.vertices.max(0) + 0.5)
+    trimesh.util.concatenate([a.to_trimesh(), crumb]).export(d / "a.ply")
+    b.to_trimesh().export(d / "b.ply")
+    _garbage(d / "broken.stl")
+    return d
+
+
+# --- bodies and crumbs ------------------------------------------------------------------------
+
+def test_bodies_become_fragments_and_crumbs_are_listed(tmp_path):
+    p = tmp_path / "heap.ply"
+    _heap_mesh().export(p)
+    frags, skipped, notes = load_fragments(p)
+    assert [f.name for f in frags] == ["heap#1", "heap#2"]
+    assert all(f.file == "heap.ply" for f in frags)
+    assert [len(f.faces) for f in frags] == [12, 12]
+    assert frags[0].size == pytest.approx(np.sqrt(14)) and frags[1].size == pytest.approx(np.sqrt(6))
+    assert len(skipped) == 1 and skipped[0]["file"] == "heap.ply" and skipped[0]["name"] == "heap#3"
+    assert "crumb" in skipped[0]["reason"] and "heap.ply" in skipped[0]["reason"]
+    assert len(notes) == 1 and "3 bodies: kept 2 (heap#1, heap#2), dropped 1 crumb" in notes[0]
+
+
+def test_one_body_and_crumbs_keeps_the_plain_name(tmp_path):
+    p = tmp_path / "shard.stl"
+    trimesh.util.concatenate([_box(), _box((0.01, 0.01, 0.01), (3, 0, 0))]).export(p)
+    frags, skipped, _ = load_fragments(p)
+    assert [f.name for f in frags] == ["shard"] and [s["name"] for s in skipped] == ["shard#2"]
+
+
+def test_load_fragment_uses_the_largest_body_and_says_so(tmp_path):
+    p = tmp_path / "heap.obj"
+    _heap_mesh().export(p)
+    frag = load_fragment(p)
+    assert frag.name == "heap#1" and len(frag.faces) == 12
+    assert any("holds 3 bodies; using the largest" in n for n in frag.notes)
+
+
+# --- formats -------------------------------------------------------------------------------
+
+def test_obj_with_a_missing_mtl(tmp_path):
+    p = tmp_path / "tet.obj"
+    p.write_text("mtllib nowhere.mtl\nusemtl stone\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
+                 "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    frag = load_fragment(p)
+    assert frag.name == "tet" and frag.file == "tet.obj" and len(frag.faces) == 4
+
+
+def test_ply_with_colours_and_normals(tmp_path):
+    box = _box()
+    box.visual.vertex_colors = np.random.default_rng(0).integers(0, 255, (len(box.vertices), 4))
+    p = tmp_path / "painted.ply"
+    p.write_bytes(box.export(file_type="ply", vertex_normal=True))
+    header = p.read_bytes()[:600]
+    assert b"property uchar red" in header and b"property float nx" in header
+    frag = load_fragment(p)
+    assert len(frag.faces) == 12 and frag.size == pytest.approx(np.sqrt(14))
+
+
+@pytest.mark.parametrize("kind", ["stl", "stl_ascii"])
+def test_binary_and_ascii_stl(tmp_path, kind):
+    p = tmp_path / "box.stl"
+    p.write_bytes(_box().export(file_type=kind) if kind == "stl" else _box().export(file_type=kind).encode())
+    assert p.read_bytes().startswith(b"solid") == (kind == "stl_ascii")
+    frag = load_fragment(p)
+    assert len(frag.faces) == 12 and frag.size == pytest.approx(np.sqrt(14))
+
+
+def test_glb_scene_of_two_meshes_gives_two_fragments(tmp_path):
+    scene = trimesh.Scene()
+    scene.add_geometry(_box(), geom_name="big")
+    scene.add_geometry(trimesh.creation.icosphere(subdivisions=2, radius=0.8), geom_name="ball",
+                       transform=trimesh.transformations.translation_matrix([5, 0, 0]))
+    p = tmp_path / "scene.glb"
+    scene.export(p)
+    batch = read_batch([p])
+    assert sorted(f.name for f in batch.fragments) == ["scene#1", "scene#2"]
+    assert {f.file for f in batch.fragments} == {"scene.glb"}
+    centres = sorted(float(f.vertices.mean(0)[0]) for f in batch.fragments)
+    assert centres == pytest.approx([0.0, 5.0], abs=1e-6)  # the node transforms are applied
+    assert sorted(len(f.faces) for f in batch.fragments) == [12, 320]
+
+
+def test_las_without_a_reader_is_skipped_with_a_reason(tmp_path):
+    pytest.importorskip("trimesh")
+    try:
+        import laspy  # noqa: F401
+        pytest.skip("laspy is installed")
+    except ImportError:
+        pass
+    _box().export(tmp_path / "a.ply")
+    (tmp_path / "scan.las").write_bytes(b"LASF" + bytes(200))
+    batch = read_batch(tmp_path)
+    assert [s["file"] for s in batch.skipped] == ["scan.las"] and "laspy" in batch.skipped[0]["reason"]
+
+
+# --- batches and names ---------------------------------------------------------------------
+
+def test_an_unreadable_file_is_skipped_not_fatal(tmp_path):
+    _box().export(tmp_path / "a.ply")
+    _box(at=(5, 0, 0)).export(tmp_path / "b.off")
+    _garbage(tmp_path / "c.stl")
+    batch = read_batch(tmp_path)
+    assert [f.name for f in batch.fragments] == ["a", "b"]
+    assert len(batch.skipped) == 1 and batch.skipped[0]["file"] == "c.stl"
+    assert "c.stl" in batch.skipped[0]["reason"]
+    assert batch.messages()[0].startswith("skipped: ") and "c.stl" in batch.messages()[0]
+
+
+def test_duplicate_stems_get_distinct_names(tmp_path):
+    for name in ("a.ply", "a.obj", "b.stl"):
+        _box().export(tmp_path / name)
+    batch = read_batch(tmp_path)
+    assert [(f.name, f.file) for f in batch.fragments] == [("a.obj", "a.obj"), ("a.ply", "a.ply"), ("b", "b.stl")]
+    assert fragment_ids(["x/a.ply", "y/a.ply", "x/c.ply"]) == ["x/a.ply", "y/a.ply", "c"]
+
+
+def test_assemble_writes_skipped_and_notes(pair_dir, tmp_path):
+    from relicgpu.assembly import assemble
+
+    out = tmp_path / "out"
+    files = sorted(pair_dir.iterdir())
+    result = assemble(files, backend="numpy", progress=False, out_dir=out)
+    assert result.names == ["a", "b"]
+    doc = json.loads((out / "assembly.json").read_text())
+    assert [(f["name"], f["file"]) for f in doc["fragments"]] == [("a", "a.ply"), ("b", "b.ply")]
+    assert {s["file"] for s in doc["skipped"]} == {"a.ply", "broken.stl"}
+    assert any(s.get("name") == "a#2" and "crumb" in s["reason"] for s in doc["skipped"])
+    assert any("a.ply: 2 bodies" in n for n in doc["notes"])
+
+
+# --- the command line ----------------------------------------------------------------------
+
+def test_cli_assemble_exit_code_2_only_below_two_fragments(tmp_path, capsys):
+    _box().export(tmp_path / "a.ply")
+    _garbage(tmp_path / "b.stl")
+    assert main(["assemble", str(tmp_path), "-o", str(tmp_path / "out"), "--backend", "numpy", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[0].startswith("skipped: ") and "b.stl" in err[0]
+    assert "only 1 fragment(s) could be read" in err[-1]
+    assert main(["group", str(tmp_path), "-o", str(tmp_path / "g"), "--quiet"]) == 2
+
+
+def test_cli_group_skips_and_records(pair_dir, tmp_path, capsys):
+    assert main(["group", str(pair_dir), "-o", str(tmp_path / "g"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "skipped: " in err and "broken.stl" in err and "crumb" in err
+    doc = json.loads((tmp_path / "g" / "groups.json").read_text())
+    assert sorted((f["name"], f["file"]) for f in doc["fragments"]) == [("a", "a.ply"), ("b", "b.ply")]
+    assert {s["file"] for s in doc["skipped"]} == {"a.ply", "broken.stl"}
+    assert doc["notes"]
+
+
+def test_cli_match_uses_the_largest_body_and_stops_on_unreadable(pair_dir, tmp_path, capsys):
+    out = tmp_path / "m"
+    assert main(["match", str(pair_dir / "a.ply"), str(pair_dir / "b.ply"), "-o", str(out),
+                 "--backend", "numpy"]) == 0
+    assert "using the largest" in capsys.readouterr().err
+    doc = json.loads((out / "match.json").read_text())
+    assert any("using the largest" in n for n in doc["notes"])
+    assert main(["match", str(pair_dir / "a.ply"), str(pair_dir / "broken.stl"), "-o", str(tmp_path / "m2"),
+                 "--backend", "numpy"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "broken.stl" in err[0] and err[0].startswith("relicgpu match: ")
