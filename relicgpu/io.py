@@ -12,6 +12,7 @@ import dataclasses
 import json
 import os
 import tempfile
+import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -343,6 +344,7 @@ class Batch:
     fragments: list[Fragment]
     skipped: list[dict] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    seconds: float = 0.0  # time taken to read it
 
     def messages(self) -> list[str]:
         """One terminal line per decision."""
@@ -388,6 +390,7 @@ def read_batch(fragments_or_dir) -> Batch:
         items: list = fragment_files(fragments_or_dir)
     else:
         items = list(fragments_or_dir)
+    t0 = time.perf_counter()
     paths = [Path(x) for x in items if not isinstance(x, Fragment)]
     ids = iter(fragment_ids(paths))
     batch = Batch([])
@@ -406,6 +409,7 @@ def read_batch(fragments_or_dir) -> Batch:
         batch.fragments += frags
         batch.skipped += skipped
         batch.notes += notes + [n for f in frags for n in f.notes]
+    batch.seconds = time.perf_counter() - t0
     return batch
 
 
