@@ -214,12 +214,17 @@ def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals
     goes below it. Pairs farther than `cutoff` are left out. init: one (4,4) pose or a
     stack (H,4,4), polished together (one nearest-neighbour launch a round), each stopping
     on its own when its step vanishes or fewer than 6 pairs are left.
+
+    The step turns about the moved source's centroid and is solved in units of the source's
+    RMS radius, so that the result does not depend on the units or on how far from the
+    origin the points lie (a turn about a far origin is mostly translation).
     """
     poses = np.array(init, np.float64)
     single = poses.ndim == 2
     poses = poses.reshape(-1, 4, 4)
     active = np.ones(len(poses), bool)
     n = len(source)
+    radius = float(np.sqrt(((source - source.mean(0)) ** 2).sum(1).mean())) or 1.0
     index = backend.nearest_index(target) if index is None else index
     for _ in range(iterations):
         live = np.flatnonzero(active)
@@ -231,8 +236,10 @@ def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals
         keep = (np.asarray(dist).reshape(len(live), n) < cutoff).astype(np.float64)
         enough = keep.sum(axis=1) >= 6
         q, nrm = target[idx], target_normals[idx]
-        a = np.concatenate([np.cross(moved, nrm), nrm], axis=2) * keep[..., None]
-        b = -np.einsum("hij,hij->hi", moved - q, nrm)
+        centre = moved.mean(axis=1, keepdims=True)
+        arm = (moved - centre) / radius
+        a = np.concatenate([np.cross(arm, nrm), nrm], axis=2) * keep[..., None]
+        b = -np.einsum("hij,hij->hi", moved - q, nrm) / radius
         ata = np.matmul(np.swapaxes(a, 1, 2), a) + 1e-12 * np.eye(6)
         atb = np.matmul(np.swapaxes(a, 1, 2), b[..., None])[..., 0]
         for k, h in enumerate(live):
@@ -244,9 +251,10 @@ def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals
             except np.linalg.LinAlgError:
                 active[h] = False
                 continue
-            step = np.eye(4)
-            step[:3, :3] = axis_rotation(x[:3] / (np.linalg.norm(x[:3]) or 1.0), float(np.linalg.norm(x[:3])))
-            step[:3, 3] = x[3:]
+            turn = axis_rotation(x[:3] / (np.linalg.norm(x[:3]) or 1.0), float(np.linalg.norm(x[:3])))
+            step = np.eye(4)  # p -> turn (p - c) + c + t
+            step[:3, :3] = turn
+            step[:3, 3] = centre[k, 0] - turn @ centre[k, 0] + radius * x[3:]
             poses[h] = step @ poses[h]
             if np.linalg.norm(x) < 1e-9:
                 active[h] = False

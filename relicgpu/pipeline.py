@@ -18,6 +18,7 @@ from .backends import resolve
 from .icp import same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
 from .io import Fragment
 from .params import Params
+from .pointcloud import estimate_normals, even_subsample, fracture_likelihood
 from .ppf import PairTable, pair_table, smoothed_normals, vote_poses
 from .segment import segment
 from .verify import SurfaceSample, verify, vertex_normals
@@ -79,6 +80,8 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     scale = float(scale or params.unit or fragment.size)
     if scale <= 0:
         raise ValueError(f"{fragment.name}: fragment has no extent")
+    if len(fragment.faces) == 0:
+        return _prepare_cloud(fragment, params, scale)
     timings = {}
     t0 = time.perf_counter()
     seg = segment(fragment.vertices, fragment.faces, params, scale, be)
@@ -108,22 +111,39 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
 
 
 def _surface_sample(fragment: Fragment, seg, n_points: int, plane_radius: float) -> SurfaceSample:
-    """Deterministic subsample of fracture-face vertices and of all vertices (with normals)."""
+    """An even subsample of fracture-face vertices and of all vertices (with normals)."""
     v, f = fragment.vertices, fragment.faces
     normals = vertex_normals(v, f, seg.normals, seg.areas)
     frac_faces = np.flatnonzero(seg.fracture_faces)
     vertex_region = np.full(len(v), -1)
     vertex_region[f[frac_faces].ravel()] = np.repeat(seg.face_region[frac_faces], 3)
     frac_vertices = np.flatnonzero(vertex_region >= 0)
-    rng = np.random.default_rng(len(v))
-    if len(frac_vertices) > n_points:
-        frac_vertices = np.sort(rng.choice(frac_vertices, n_points, replace=False))
-    surf = np.arange(len(v))
-    if len(surf) > 2 * n_points:
-        surf = np.sort(rng.choice(surf, 2 * n_points, replace=False))
+    # spread evenly over space, not drawn at random: the same sample up to units (issue 15)
+    frac_vertices = frac_vertices[even_subsample(v[frac_vertices], n_points)]
+    surf = even_subsample(v, 2 * n_points)
     plane_normals = smoothed_normals(v[frac_vertices], normals[frac_vertices], plane_radius)
     return SurfaceSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf], normals[surf],
                          plane_normals)
+
+
+def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
+    """A fragment given as points (a `pointcloud.CloudFragment`, or any Fragment without faces):
+    normals estimated where missing, fracture points by their likelihood from the points' own
+    roughness (`pointcloud.fracture_likelihood`); no contours or patches (no surface to cut),
+    so matching runs on point-pair votes and ICP alone."""
+    t0 = time.perf_counter()
+    points = np.asarray(fragment.vertices, np.float64)
+    normals = estimate_normals(points, getattr(fragment, "normals", None))
+    likelihood = fracture_likelihood(points)
+    fracture = np.flatnonzero(likelihood >= 0.5)
+    fracture = fracture[even_subsample(points[fracture], params.icp_points)]
+    surf = even_subsample(points, 2 * params.icp_points)
+    plane_normals = smoothed_normals(points[fracture], normals[fracture], params.ppf_normal_radius * scale)
+    sample = SurfaceSample(points[fracture], np.zeros(len(fracture), np.int64), normals[fracture], points[surf],
+                           normals[surf], plane_normals)
+    no_faces = np.zeros(0, np.int64)
+    return Prepared(fragment, scale, no_faces, np.zeros(0, bool), [], sample, [],
+                    {"cloud": time.perf_counter() - t0})
 
 
 @dataclass(frozen=True)

@@ -102,14 +102,21 @@ def roughness_threshold(rough: np.ndarray, areas: np.ndarray, params: Params) ->
     fracture (inner pieces of a 10-piece break: 50-86%), where that share is fracture too."""
     if len(rough) < 2 or areas.sum() <= 0:
         return params.roughness_threshold_deg
-    x = np.log(np.maximum(rough, 1e-3))
+    return max(params.roughness_threshold_deg, float(np.exp(otsu_split(np.log(np.maximum(rough, 1e-3)), areas))))
+
+
+def otsu_split(x: np.ndarray, w: np.ndarray) -> float:
+    """Otsu's threshold of values x (N,) with weights w (N,): the x that splits them into the
+    two classes (<= and >) of most between-class variance."""
+    if len(x) < 2:
+        return float(x[0]) if len(x) else 0.0
     order = np.argsort(x)
-    x, w = x[order], areas[order]
+    x, w = x[order], w[order]
     w0 = np.cumsum(w)[:-1]
     s0 = np.cumsum(w * x)[:-1]
     w1 = w.sum() - w0
     between = w0 * w1 * (s0 / np.maximum(w0, 1e-300) - ((w * x).sum() - s0) / np.maximum(w1, 1e-300)) ** 2
-    return max(params.roughness_threshold_deg, float(np.exp(x[np.argmax(between)])))
+    return float(x[np.argmax(between)])
 
 
 def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: float, backend) -> Segmentation:
