@@ -134,7 +134,7 @@ def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
     t0 = time.perf_counter()
     points = np.asarray(fragment.vertices, np.float64)
     normals = estimate_normals(points, getattr(fragment, "normals", None))
-    likelihood = fracture_likelihood(points)
+    likelihood = fracture_likelihood(points, normals)
     fracture = np.flatnonzero(likelihood >= 0.5)
     fracture = fracture[even_subsample(points[fracture], params.icp_points)]
     surf = even_subsample(points, 2 * params.icp_points)

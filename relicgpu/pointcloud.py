@@ -121,6 +121,9 @@ class MeshResult:
 # normals (fewer: on 2,500 points of a thin vase wall 16 reach across the wall).
 CLOUD_NEIGHBOURS = 16
 CLOUD_NORMAL_NEIGHBOURS = 12
+# A point is rough (fracture) when its normal scatter lies this many robust spreads (MAD) of the
+# cloud's own above their median.
+ROUGH_SPREADS = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -229,28 +232,33 @@ def estimate_normals(points: np.ndarray, given: np.ndarray | None = None, k: int
     return orient_normals(points, local_pca(points, k)[1][:, :, 0], k)
 
 
-def fracture_likelihood(points: np.ndarray, k: int = CLOUD_NEIGHBOURS) -> np.ndarray:
+def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_NEIGHBOURS) -> np.ndarray:
     """(N,) likelihood in [0, 1] that a point lies on fracture surface, from its roughness.
 
-    The surface variation l0 / (l0 + l1 + l2) of each point's k nearest points (Pauly et al.
-    2002) is low on the smooth original surface (scanner noise, gentle curvature) and high on a
-    rough break. The split between the two is Otsu's on its logarithm (as for meshes, see
-    segment.roughness_threshold), so it is relative to the cloud's own noise; the likelihood is
-    a logistic of the distance from that split in units of the spread of each side, averaged
-    over the k nearest points (a lone rough point on a smooth surface says little)."""
+    Roughness is the scatter of the (oriented, N x 3) normals of a point's k nearest points
+    across two directions: the middle eigenvalue of their covariance. A smooth surface (noise,
+    gentle curvature) scatters its normals little, a crease or a rim a lot but along one arc
+    only (one large eigenvalue), a rough break in every direction. The split between smooth
+    and rough is Otsu's on its logarithm (as for meshes, see segment.roughness_threshold), so
+    it is relative to the cloud's own noise; the likelihood is a logistic of the distance from
+    that split in units of the spread of each side, averaged over the k nearest points (a lone
+    rough point on a smooth surface says little)."""
     from scipy.spatial import cKDTree
 
     from .segment import otsu_split
 
-    values, _ = local_pca(points, k)
-    variation = values[:, 0] / np.maximum(values.sum(axis=1), 1e-300)
-    x = np.log(np.maximum(variation, 1e-12))
-    split = otsu_split(x, np.ones(len(x)))
-    low, high = x[x <= split], x[x > split]
-    spread = 0.5 * ((low.std() if len(low) else 0.0) + (high.std() if len(high) else 0.0)) or 1.0
-    likelihood = 1.0 / (1.0 + np.exp(-(x - split) / spread))
-    _, idx = cKDTree(points).query(points, k=min(k, len(points)))
-    return likelihood[idx.reshape(len(points), -1)].mean(axis=1)
+    k = min(k, len(points))
+    _, idx = cKDTree(points).query(points, k=k)
+    idx = idx.reshape(len(points), k)
+    m = normals[idx] - normals[idx].mean(axis=1, keepdims=True)
+    scatter = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", m, m) / k)[:, 1]
+    x = np.log(np.maximum(scatter, 1e-12))
+    # the smooth surface is most of a piece: the split lies above the bulk's own spread
+    centre = np.median(x)
+    noise = 1.4826 * np.median(np.abs(x - centre)) or 1.0
+    split = max(otsu_split(x, np.ones(len(x))), centre + ROUGH_SPREADS * noise)
+    likelihood = 1.0 / (1.0 + np.exp(-(x - split) / noise))
+    return likelihood[idx].mean(axis=1)
 
 
 # --- readers -------------------------------------------------------------
@@ -1334,15 +1342,20 @@ def closed_manifold_fault(vertices: np.ndarray, faces: np.ndarray) -> str | None
 
 def load_point_cloud_fragment(path, name: str | None = None, *, max_points: int | None = MATCH_POINTS,
                               alpha_factor: float = ALPHA_FACTOR, progress: bool = False) -> Fragment:
-    """Read a point-cloud file and triangulate it into a checked Fragment (called by relicgpu.io.load_fragment).
+    """Read a point-cloud file and triangulate it into a checked Fragment (called by relicgpu.io.load_fragment);
+    a cloud that does not close into a solid becomes a CloudFragment, matched on its points.
 
     The cloud is thinned to max_points (MATCH_POINTS: the density the matcher is tuned for);
     `relicgpu mesh` makes a finer mesh to keep.
     """
     p = Path(path)
     cloud = read_point_cloud(p)
-    result = triangulate(cloud.points, max_points=max_points, alpha_factor=alpha_factor,
-                         progress=progress, label=str(p))
+    try:
+        result = triangulate(cloud.points, max_points=max_points, alpha_factor=alpha_factor,
+                             progress=progress, label=str(p))
+    except FragmentError as exc:  # sparse, thin or open: no solid, matched on its points
+        return cloud_fragment(name or p.stem, cloud.points, cloud.normals, str(p),
+                              cloud.notes + (f"{exc}; matched on its points",))
     frag = fragment_from_arrays(name or p.stem, result.vertices, result.faces, source=str(p))
     summary = (f"{p}: triangulated {result.n_input} points ({result.n_meshed} meshed) into "
                f"{len(result.faces)} faces, alpha {result.alpha:.4g}")

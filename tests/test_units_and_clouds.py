@@ -81,3 +81,85 @@ def test_a_pair_in_other_units_gives_the_same_pose(heap, backend):
         rot, rms = _pose_gap(_back_in_unit_size(m.transform, factor, sa, sb), ref.transform, b.vertices)
         # float32 kernels round differently at another scale; the pose still agrees closely
         assert rot < 0.05 and rms < 1e-4 * b.size, (factor, rot, rms)
+
+
+# --- item 2: scans that are not closed meshes -----------------------------------
+
+def _cloud_pair(shape, seed, with_normals, n=2500):
+    """A synthetic two-piece break as sparse clouds (n surface points a piece, noise 0.05% of the
+    size) and the transform carrying b onto a. Also the true fracture label of every point."""
+    import trimesh
+
+    from relicgpu.pointcloud import cloud_fragment
+
+    r = synth.generate(shape, pieces=2, seed=seed, faces=4000, noise=0.0005, progress=False)
+    frags, labels = [], []
+    for i, f in enumerate(r.fragments):
+        mesh = f.to_trimesh()
+        p, face = trimesh.sample.sample_surface(mesh, n, seed=100 * seed + i)
+        p = p + np.random.default_rng(7 * seed + i).normal(size=p.shape) * 0.0005 * f.size
+        frags.append(cloud_fragment(f.name, p, mesh.face_normals[face] if with_normals else None))
+        labels.append(r.fracture_faces[i][face])
+    return frags, labels, np.linalg.inv(r.poses[0]) @ r.poses[1]
+
+
+def _with_holes(fragment, skin, rng, holes=3, radius=0.06):
+    """The mesh with `holes` round holes (radius a fraction of its size) cut into its skin faces."""
+    centres = fragment.vertices[fragment.faces].mean(axis=1)
+    cut = np.zeros(len(centres), bool)
+    for k in rng.choice(np.flatnonzero(skin), holes, replace=False):
+        cut |= np.linalg.norm(centres - centres[k], axis=1) < radius * fragment.size
+    faces = fragment.faces[~cut]
+    used = np.unique(faces)
+    remap = np.full(len(fragment.vertices), -1)
+    remap[used] = np.arange(len(used))
+    return Fragment(fragment.name, fragment.vertices[used], remap[faces].astype(np.int32))
+
+
+def _assert_right(result, b, truth):
+    assert result.accepted, result.reason
+    rot, rms = _pose_gap(result.transform, truth, b.vertices)
+    assert rot < 2.0 and rms < 0.01 * b.size, (rot, rms)
+
+
+def test_estimated_normals_face_outward_and_fracture_points_rank_rough():
+    from scipy.stats import rankdata
+
+    from relicgpu.pointcloud import estimate_normals, fracture_likelihood
+
+    for shape in ("torso", "slab"):  # a board's broad faces meet its rim at right angles (thin vase walls: see the report)
+        (a, _), (label, _), _ = _cloud_pair(shape, 1, with_normals=True)
+        normals = estimate_normals(a.vertices)
+        assert np.mean(np.einsum("ij,ij->i", normals, a.normals) > 0) > 0.95
+        score = rankdata(fracture_likelihood(a.vertices, normals))
+        auc = (score[label].sum() - label.sum() * (label.sum() + 1) / 2) / (label.sum() * (~label).sum())
+        assert auc > 0.85
+
+
+# the cases that hold today (5/10 with normals, 4/10 without on vase/torso/slab seeds 0-3: see the report)
+@pytest.mark.parametrize("shape,seed,with_normals", [("torso", 0, True), ("torso", 0, False), ("torso", 1, True),
+                                                     ("torso", 1, False), ("slab", 1, True)])
+def test_sparse_clouds_are_matched_on_their_points(shape, seed, with_normals):
+    (a, b), _, truth = _cloud_pair(shape, seed, with_normals)
+    _assert_right(match_pair(a, b, backend="numpy"), b, truth)
+
+
+@pytest.mark.parametrize("shape,seed", [("vase", 0), ("torso", 0), ("slab", 0)])
+def test_open_meshes_with_holes_in_the_skin_are_matched(shape, seed):
+    r = synth.generate(shape, pieces=2, seed=seed, faces=4000, noise=0.0005, progress=False)
+    rng = np.random.default_rng(seed)
+    a, b = (_with_holes(f, ~frac, rng) for f, frac in zip(r.fragments, r.fracture_faces))
+    _assert_right(match_pair(a, b, backend="numpy"), b, np.linalg.inv(r.poses[0]) @ r.poses[1])
+
+
+def test_a_cloud_that_does_not_close_loads_as_points(tmp_path):
+    from relicgpu.io import load_fragment
+    from relicgpu.pointcloud import CloudFragment
+
+    d = np.c_[np.random.default_rng(0).uniform(size=(2500, 2)), np.zeros(2500)]  # an open, flat sheet
+    np.savetxt(tmp_path / "shell.xyz", d)
+    frag = load_fragment(tmp_path / "shell.xyz")
+    assert isinstance(frag, CloudFragment) and len(frag.faces) == 0 and frag.normals is None
+    assert any("matched on its points" in n for n in frag.notes)
+    moved = frag.transformed(np.diag([1.0, -1.0, -1.0, 1.0]))
+    assert isinstance(moved, CloudFragment) and np.allclose(moved.vertices[:, 2], -frag.vertices[:, 2])
