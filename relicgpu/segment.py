@@ -56,6 +56,7 @@ class Segmentation:
     region_is_fracture: np.ndarray  # (R,) bool
     face_facet: np.ndarray  # (F,) int region id before neighbouring fracture regions are joined
     face_roughness: np.ndarray  # (F,) degrees, normal perturbation
+    face_fracture_prob: np.ndarray  # (F,) in [0, 1]: area share of its facet's faces voted fracture (> 0.5: fracture)
     edge_angle: np.ndarray  # (E,) degrees, normal angle of each interior edge
     normals: np.ndarray  # (F,3)
     areas: np.ndarray  # (F,)
@@ -141,14 +142,15 @@ def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: floa
     n_regions = int(region.max()) + 1
     frac_area = np.bincount(region, weights=areas * is_fracture, minlength=n_regions)
     all_area = np.bincount(region, weights=areas, minlength=n_regions)
-    region_is_fracture = frac_area > 0.5 * all_area
+    region_share = frac_area / np.where(all_area > 0, all_area, 1)
+    region_is_fracture = region_share > 0.5
     # Neighbouring fracture regions form one fracture patch (one set of contours).
     fracture = region_is_fracture[region]
     same = (region[e0] == region[e1]) | (fracture[e0] & fracture[e1])
     patch = _components(len(f), topo.edge_faces[same])
     patch_is_fracture = np.zeros(int(patch.max()) + 1, bool)
     patch_is_fracture[patch[fracture]] = True
-    return Segmentation(patch, patch_is_fracture, region, rough, angle, normals, areas, topo)
+    return Segmentation(patch, patch_is_fracture, region, rough, region_share[region], angle, normals, areas, topo)
 
 
 def _components(n: int, edges: np.ndarray) -> np.ndarray:
