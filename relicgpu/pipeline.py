@@ -18,7 +18,8 @@ from .backends import resolve
 from .icp import same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
 from .io import Fragment
 from .params import Params
-from .pointcloud import estimate_normals, even_subsample, fracture_likelihood
+from .cloudmatch import cloud_params, cloud_sample, is_cloud
+from .pointcloud import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals, vote_poses
 from .segment import segment
 from .verify import SurfaceSample, verify, vertex_normals
@@ -127,20 +128,11 @@ def _surface_sample(fragment: Fragment, seg, n_points: int, plane_radius: float)
 
 
 def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
-    """A fragment given as points (a `pointcloud.CloudFragment`, or any Fragment without faces):
-    normals estimated where missing, fracture points by their likelihood from the points' own
-    roughness (`pointcloud.fracture_likelihood`); no contours or patches (no surface to cut),
-    so matching runs on point-pair votes and ICP alone."""
+    """A fragment given as points (a `pointcloud.CloudFragment`, or any Fragment without faces),
+    sampled by `cloudmatch.cloud_sample`; no contours or patches (no surface to cut), so
+    matching runs on point-pair votes and ICP alone."""
     t0 = time.perf_counter()
-    points = np.asarray(fragment.vertices, np.float64)
-    normals = estimate_normals(points, getattr(fragment, "normals", None))
-    likelihood = fracture_likelihood(points, normals)
-    fracture = np.flatnonzero(likelihood >= 0.5)
-    fracture = fracture[even_subsample(points[fracture], params.icp_points)]
-    surf = even_subsample(points, 2 * params.icp_points)
-    plane_normals = smoothed_normals(points[fracture], normals[fracture], params.ppf_normal_radius * scale)
-    sample = SurfaceSample(points[fracture], np.zeros(len(fracture), np.int64), normals[fracture], points[surf],
-                           normals[surf], plane_normals)
+    sample = cloud_sample(fragment.vertices, getattr(fragment, "normals", None), params, scale)
     no_faces = np.zeros(0, np.int64)
     return Prepared(fragment, scale, no_faces, np.zeros(0, bool), [], sample, [],
                     {"cloud": time.perf_counter() - t0})
@@ -252,6 +244,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     t_start = time.perf_counter()
     pa = _as_prepared(a, params, be, scale)
     pb = _as_prepared(b, params, be, scale)
+    params = cloud_params(params, (pa.fragment, pb.fragment), scale)
     timings = {"prepare": time.perf_counter() - t_start}
 
     t0 = time.perf_counter()
@@ -335,7 +328,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     for transform, ca, cb, pairs in fits:
         ver = verify(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
                      params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
-                     params.max_penetration, index_of)
+                     params.max_penetration, index_of, mutual=is_cloud(pa.fragment) or is_cloud(pb.fragment))
         rank = (ver.accepted, ver.overlap - ver.penetration)
         if best is None or rank > best[0]:
             best = (rank, transform, ver, ca, cb, pairs)

@@ -121,9 +121,12 @@ class MeshResult:
 # normals (fewer: on 2,500 points of a thin vase wall 16 reach across the wall).
 CLOUD_NEIGHBOURS = 16
 CLOUD_NORMAL_NEIGHBOURS = 12
-# A point is rough (fracture) when its normal scatter lies this many robust spreads (MAD) of the
-# cloud's own above their median.
-ROUGH_SPREADS = 0.5
+# Fracture likelihood: roughness is this quantile of the angles to the neighbours' normals; it is
+# smoothed with weights |n_i . n_j| ** ROUGH_PARALLEL_POWER; a point is rough (fracture) when it
+# lies ROUGH_SPREADS robust spreads (MAD) of the cloud's own above their median.
+ROUGH_QUANTILE = 0.35
+ROUGH_PARALLEL_POWER = 4
+ROUGH_SPREADS = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,17 +235,31 @@ def estimate_normals(points: np.ndarray, given: np.ndarray | None = None, k: int
     return orient_normals(points, local_pca(points, k)[1][:, :, 0], k)
 
 
-def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_NEIGHBOURS) -> np.ndarray:
-    """(N,) likelihood in [0, 1] that a point lies on fracture surface, from its roughness.
+def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_NORMAL_NEIGHBOURS) -> np.ndarray:
+    """Likelihood that each point lies on fracture surface, from the roughness of its normals.
 
-    Roughness is the scatter of the (oriented, N x 3) normals of a point's k nearest points
-    across two directions: the middle eigenvalue of their covariance. A smooth surface (noise,
-    gentle curvature) scatters its normals little, a crease or a rim a lot but along one arc
-    only (one large eigenvalue), a rough break in every direction. The split between smooth
-    and rough is Otsu's on its logarithm (as for meshes, see segment.roughness_threshold), so
-    it is relative to the cloud's own noise; the likelihood is a logistic of the distance from
-    that split in units of the spread of each side, averaged over the k nearest points (a lone
-    rough point on a smooth surface says little)."""
+    Roughness is a low quantile (ROUGH_QUANTILE) of the angles between a point's normal and
+    those of its k nearest points, taken unsigned (a thin wall's other face, or a normal
+    oriented the wrong way, is no roughness). On smooth skin most neighbours are near parallel;
+    a skin point beside a crease (a rim, a thin wall's broken edge) still has its own side's
+    neighbours, so a low quantile stays low there; on a rough break even the most parallel
+    neighbours differ. The values are then smoothed twice over each neighbourhood, every
+    neighbour weighted by how parallel its normal is to the point's (a bilateral filter): the
+    average follows a point's own surface and does not blur fracture across a crease. The split
+    between smooth and rough lies above the bulk's spread (median + ROUGH_SPREADS robust spreads
+    of the log roughness, at least Otsu's split); the likelihood is a logistic of the distance
+    from it.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+    normals : (N, 3) unit normals (orientation is not used)
+    k : neighbours per point
+
+    Returns
+    -------
+    (N,) array in [0, 1]
+    """
     from scipy.spatial import cKDTree
 
     from .segment import otsu_split
@@ -250,15 +267,17 @@ def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_
     k = min(k, len(points))
     _, idx = cKDTree(points).query(points, k=k)
     idx = idx.reshape(len(points), k)
-    m = normals[idx] - normals[idx].mean(axis=1, keepdims=True)
-    scatter = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", m, m) / k)[:, 1]
-    x = np.log(np.maximum(scatter, 1e-12))
+    parallel = np.abs(np.einsum("nkd,nd->nk", normals[idx], normals))
+    angles = np.arccos(np.clip(parallel[:, 1:], 0.0, 1.0)) if k > 1 else np.zeros((len(points), 1))
+    x = np.log(np.maximum(np.quantile(angles, ROUGH_QUANTILE, axis=1), 1e-6))
+    weight = parallel ** ROUGH_PARALLEL_POWER
+    for _ in range(2):
+        x = (weight * x[idx]).sum(axis=1) / weight.sum(axis=1)
     # the smooth surface is most of a piece: the split lies above the bulk's own spread
     centre = np.median(x)
     noise = 1.4826 * np.median(np.abs(x - centre)) or 1.0
     split = max(otsu_split(x, np.ones(len(x))), centre + ROUGH_SPREADS * noise)
-    likelihood = 1.0 / (1.0 + np.exp(-(x - split) / noise))
-    return likelihood[idx].mean(axis=1)
+    return 1.0 / (1.0 + np.exp(-(x - split) / noise))
 
 
 # --- readers -------------------------------------------------------------

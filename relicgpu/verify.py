@@ -45,8 +45,13 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.nda
 
 def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, contact: float,
            max_rmse: float, min_overlap: float, depth: float, max_penetration: float,
-           index_of=None) -> Verification:
+           index_of=None, mutual: bool = False) -> Verification:
     """Check b moved by `transform` against a (all lengths absolute).
+
+    The overlap is the larger of the two fracture samples' shares in contact (a partial contact
+    covers a part of one side), or with `mutual` the smaller (both sides must touch: fracture
+    samples picked from a sparse cloud's roughness hold skin, which a wrong fit can put on a
+    strip of the other's fracture).
 
     index_of: optional function from one of the samples' point arrays to its nearest-neighbour
     index (kept by a caller that verifies several transforms of one pair); every query here
@@ -59,7 +64,7 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
     i_ab, d_ab = index_of(b.fracture).query(apply(inv, a.fracture))  # distances and pairs as in a's frame
     d_ba, d_ab = np.asarray(d_ba, np.float64), np.asarray(d_ab, np.float64)
     in_b, in_a = d_ba < contact, d_ab < contact
-    overlap = float(max(in_b.mean(), in_a.mean()))
+    overlap = float((min if mutual else max)(in_b.mean(), in_a.mean()))
     # residual: distance to the other surface's tangent plane (two samplings of one surface
     # never share points, so point-to-point distances would measure the sampling, not the fit)
     plane_b = np.einsum("ij,ij->i", b_frac - a.fracture[np.asarray(i_ba)], a.fracture_normals[np.asarray(i_ba)])

@@ -1,0 +1,87 @@
+"""Point-cloud fragments (no faces) prepared for matching on their points (issue 15 item 2).
+
+A sparse scan (a few thousand points a piece) of a thin board or an open surface does not close
+into a solid, so it has no mesh to segment. Its fracture points are picked by the roughness of
+the normals around each point (`pointcloud.fracture_likelihood`), and the rest of the pipeline
+(point-pair votes, ICP, verification) runs on them as on a mesh's fracture sample.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .params import Params
+from .pointcloud import estimate_normals, even_subsample, fracture_likelihood, local_pca
+from .ppf import smoothed_normals
+from .verify import SurfaceSample
+
+# Roughness is read off plane fits over this many nearest points where the scan has no normals:
+# fewer than the oriented normals use (CLOUD_NORMAL_NEIGHBOURS), so that a fit does not smooth a
+# rough break into a plane (orientation does not matter to roughness).
+ROUGHNESS_NEIGHBOURS = 6
+
+
+def cloud_likelihood(points: np.ndarray, given_normals: np.ndarray | None) -> np.ndarray:
+    """(N,) fracture likelihood of a cloud's (N, 3) points, from the scan's own (N, 3) normals
+    where it has them, else from the normals of small local plane fits."""
+    rough_normals = given_normals if given_normals is not None else local_pca(points, ROUGHNESS_NEIGHBOURS)[1][:, :, 0]
+    return fracture_likelihood(points, rough_normals)
+
+
+def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
+                 scale: float) -> SurfaceSample:
+    """The sample a cloud is matched on.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+    given_normals : (N, 3) outward unit normals of the scan, or None (estimated and oriented)
+    params : Params (icp_points, ppf_normal_radius)
+    scale : the length relative parameters are fractions of
+
+    Returns
+    -------
+    SurfaceSample whose fracture points (at most params.icp_points, spread evenly) are the
+    points of fracture likelihood >= 0.5, and whose surface is up to 2 * icp_points of all.
+    """
+    points = np.asarray(points, np.float64)
+    normals = estimate_normals(points, given_normals)
+    fracture = np.flatnonzero(cloud_likelihood(points, given_normals) >= 0.5)
+    fracture = fracture[even_subsample(points[fracture], params.icp_points)]
+    surf = even_subsample(points, 2 * params.icp_points)
+    plane_normals = smoothed_normals(points[fracture], normals[fracture], params.ppf_normal_radius * scale)
+    return SurfaceSample(points[fracture], np.zeros(len(fracture), np.int64), normals[fracture], points[surf],
+                         normals[surf], plane_normals)
+
+
+# Two samplings of a rough break, a point spacing apart, never share points: the residual to the
+# other's tangent planes and the gap between touching points grow with the spacing. A sparse
+# cloud's spacing (about 1% of its size at 2,500 points) is far coarser than a mesh's sample, so
+# the verification's contact distance and residual limit are at least these many spacings.
+CONTACT_SPACINGS = 1.0
+RESIDUAL_SPACINGS = 0.4
+
+
+def point_spacing(points: np.ndarray) -> float:
+    """The median distance from each of the (N, 3) points to its nearest other point."""
+    from scipy.spatial import cKDTree
+
+    if len(points) < 2:
+        return 0.0
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def is_cloud(fragment) -> bool:
+    """Whether a fragment is given as points alone (no faces)."""
+    return len(fragment.faces) == 0
+
+
+def cloud_params(params: Params, fragments, scale: float) -> Params:
+    """params with the verification's contact distance and residual limit raised to the point
+    spacing of the pair's clouds (fragments without faces; a pair of meshes keeps params)."""
+    clouds = [f for f in fragments if is_cloud(f)]
+    if not clouds:
+        return params
+    spacing = max(point_spacing(np.asarray(f.vertices, np.float64)) for f in clouds) / scale
+    return params.with_(contact_distance=max(params.contact_distance, CONTACT_SPACINGS * spacing),
+                        max_rmse=max(params.max_rmse, RESIDUAL_SPACINGS * spacing))
