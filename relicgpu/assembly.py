@@ -33,8 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Batch, Fragment, FragmentError, atomic_write_bytes, atomic_write_json, read_batch
+from .io import Batch, Fragment, FragmentError, atomic_write_bytes, atomic_write_json, grouped_lines, read_batch
 from .icp import apply, invert
+from .outputs import assembly_glb, closed_solid, merged_solid, write_outputs  # noqa: F401 (re-exported)
 from .params import Params
 
 CACHE_VERSION = 1
@@ -66,7 +67,7 @@ CLASH_MIN_VOLUME = 0.002
 
 @dataclass(frozen=True)
 class MatchRecord:
-    """A verified pair match (b carried onto a) and whether the assembly uses it."""
+    """A pair matched in full (b carried onto a): verified or not, used or not, and why."""
     a: int
     b: int
     transform: np.ndarray
@@ -75,7 +76,17 @@ class MatchRecord:
     overlap: float
     penetration: float
     used: bool
-    note: str  # why it is used or not
+    note: str  # why it is used or not: the forest's decision, or the verification's reason
+    accepted: bool = True  # passed verification (relicgpu.verify)
+
+    def to_dict(self, names: list[str]) -> dict:
+        """The assembly.json entry: ``accepted`` (verified), ``used``, and ``reason``."""
+        def number(x):
+            return float(x) if math.isfinite(float(x)) else None
+        return {"a": names[self.a], "b": names[self.b], "transform": np.asarray(self.transform).tolist(),
+                "score": number(self.score), "rmse": number(self.rmse), "overlap": number(self.overlap),
+                "penetration": number(self.penetration), "accepted": bool(self.accepted),
+                "used": bool(self.used), "reason": self.note}
 
 
 @dataclass
@@ -83,7 +94,7 @@ class Assembly:
     names: list[str]
     poses: list  # 4x4 arrays (file coordinates -> the group's frame) or None when unplaced
     groups: list[int]  # group per fragment; 0 is the largest group, unplaced fragments have their own
-    matches: list[MatchRecord]
+    matches: list[MatchRecord]  # the verified matches
     timings: dict
     backend: str
     engine: str
@@ -93,6 +104,7 @@ class Assembly:
     files: list = field(default_factory=list)  # the file name of each fragment (default: its name)
     skipped: list = field(default_factory=list)  # files and crumbs left out while loading, with why
     notes: list = field(default_factory=list)  # other loading decisions (files split into fragments)
+    rejected: list = field(default_factory=list)  # MatchRecords of the candidates that failed verification
 
     @property
     def n_groups(self) -> int:
@@ -110,9 +122,8 @@ class Assembly:
             "fragments": [{"name": name, "file": file, "pose": None if pose is None else np.asarray(pose).tolist(),
                            "group": int(g)}
                           for name, file, pose, g in zip(self.names, self.files or self.names, self.poses, self.groups)],
-            "matches": [{"a": self.names[m.a], "b": self.names[m.b], "transform": m.transform.tolist(),
-                         "score": float(m.score), "rmse": float(m.rmse), "overlap": float(m.overlap),
-                         "used": bool(m.used)} for m in self.matches],
+            # every candidate pair matched in full: verified or not, used or not, and why
+            "matches": [m.to_dict(self.names) for m in self.matches + self.rejected],
             "backend": self.backend,
             "engine": self.engine,
             "timings": {k: round(float(v), 4) for k, v in self.timings.items()},
@@ -608,19 +619,6 @@ def _first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Para
     return None
 
 
-def closed_solid(fragment: Fragment):
-    """The fragment as a manifold3d solid, or None when it is not a closed 2-manifold (an open scan)."""
-    import manifold3d as m3d
-
-    mesh = m3d.Mesh(vert_properties=np.asarray(fragment.vertices, np.float32),
-                    tri_verts=np.asarray(fragment.faces, np.uint32))
-    mesh.merge()
-    solid = m3d.Manifold(mesh)
-    if solid.status() != m3d.Error.NoError or solid.is_empty() or solid.volume() <= 0:
-        return None
-    return solid
-
-
 def overlap_volume(a, b, transform: np.ndarray) -> tuple[float, float]:
     """The solid shared by solids a and b (b moved by `transform`): its volume over the smaller
     volume, and its mean thickness 2V/A (a thin film of area S has volume S t and area 2S)."""
@@ -856,14 +854,14 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
 
     names = [f.name for f in fragments]
     poses, groups = _finish_groups(pose, group)
-    matches = [MatchRecord(e.a, e.b, e.transform, e.score, docs[(e.a, e.b)]["rmse"], docs[(e.a, e.b)]["overlap"],
-                           docs[(e.a, e.b)]["penetration"], notes[(e.a, e.b)].startswith("used"), notes[(e.a, e.b)])
-               for e in edges]
+    matches = [_record(e.a, e.b, docs[(e.a, e.b)], notes[(e.a, e.b)]) for e in edges]
+    rejected = [_record(i, j, d, f"not verified: {d['reason']}") for (i, j), d in sorted(docs.items())
+                if not d["accepted"]]
     stats.update(accepted=len(edges), used=len(used), cache_hits=cache.hits, cache_writes=cache.writes,
                  groups=len(set(groups)), placed=sum(p is not None for p in poses))
     timings["total"] = time.perf_counter() - t_start
     result = Assembly(names, poses, groups, matches, timings, backend_name, eng.name, stats, scores, candidates,
-                      [f.file for f in fragments], list(batch.skipped), list(batch.notes))
+                      [f.file for f in fragments], list(batch.skipped), list(batch.notes), rejected)
     if out_dir is not None:
         t0 = time.perf_counter()
         write_outputs(result, fragments, out_dir)
@@ -871,6 +869,13 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
         result.timings["total"] = time.perf_counter() - t_start
         atomic_write_bytes(Path(out_dir) / "assembly.json", result.to_json().encode())
     return result
+
+
+def _record(a: int, b: int, doc: dict, note: str) -> MatchRecord:
+    """A MatchRecord from a pair's match document and the decision on it (`note`)."""
+    return MatchRecord(a, b, np.asarray(doc["transform"], np.float64), float(doc["score"]), float(doc["rmse"]),
+                       float(doc["overlap"]), float(doc["penetration"]), note.startswith("used"), note,
+                       bool(doc["accepted"]))
 
 
 def _prepare_one(payload, fragment):
@@ -897,100 +902,6 @@ def _finish_groups(pose: list, group: list[int]) -> tuple[list, list[int]]:
             groups[i] = label
             poses[i] = anchor @ pose[i] if len(m) > 1 else None
     return poses, groups
-
-
-# --- outputs ---------------------------------------------------------------------------
-
-def _colour(i: int) -> tuple[int, int, int, int]:
-    """Well separated colours: golden-angle hues."""
-    import colorsys
-    r, g, b = colorsys.hsv_to_rgb((i * 0.618033988749895) % 1.0, 0.55, 0.9)
-    return int(r * 255), int(g * 255), int(b * 255), 255
-
-
-def group_layout(assembly: Assembly, fragments: list[Fragment], gap: float = 0.1) -> dict[int, np.ndarray]:
-    """A translation per group that sets the groups (an unplaced fragment is a group of its own)
-    side by side along +x, in group order, `gap` times the largest group size apart."""
-    boxes = {}
-    for g, members in sorted(assembly.group_members().items()):
-        pts = np.concatenate([_apply(np.eye(4) if assembly.poses[i] is None else np.asarray(assembly.poses[i]),
-                                     fragments[i].vertices) for i in members])
-        boxes[g] = _bbox(pts)
-    spacing = gap * max(float(np.linalg.norm(b[1] - b[0])) for b in boxes.values())
-    out, x = {}, 0.0
-    for g, box in boxes.items():
-        shift = np.eye(4)
-        shift[:3, 3] = [x - box[0, 0], -0.5 * (box[0, 1] + box[1, 1]), -0.5 * (box[0, 2] + box[1, 2])]
-        out[g] = shift
-        x += float(box[1, 0] - box[0, 0]) + spacing
-    return out
-
-
-def assembly_glb(assembly: Assembly, fragments: list[Fragment]) -> bytes:
-    """A glTF scene: one named node per fragment, own colour, its transform the fragment's pose
-    followed by its group's translation from `group_layout` (groups side by side)."""
-    import trimesh
-
-    layout = group_layout(assembly, fragments)
-    scene = trimesh.Scene()
-    for i, frag in enumerate(fragments):
-        mesh = trimesh.Trimesh(frag.vertices, frag.faces, process=False)
-        mesh.visual.face_colors = np.tile(_colour(i), (len(frag.faces), 1))
-        pose = np.eye(4) if assembly.poses[i] is None else np.asarray(assembly.poses[i])
-        scene.add_geometry(mesh, node_name=frag.name, geom_name=frag.name,
-                           transform=layout[assembly.groups[i]] @ pose)
-    return scene.export(file_type="glb")
-
-
-def merged_solid(fragments: list[Fragment], poses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """The placed fragments united into one watertight solid with manifold3d.
-
-    Returns vertices, faces and notes (fragments left out because they are not closed
-    2-manifolds, which a boolean union needs)."""
-    import manifold3d as m3d
-
-    solids, notes = [], []
-    for frag, pose in zip(fragments, poses):
-        solid = closed_solid(frag)
-        if solid is None:
-            notes.append(f"{frag.name}: not a closed manifold mesh; left out of the merged solid")
-            continue
-        solids.append(solid.transform(np.asarray(pose, np.float64)[:3, :]))
-    if not solids:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), notes
-    union = m3d.Manifold.batch_boolean(solids, m3d.OpType.Add)
-    out = union.to_mesh()
-    return np.asarray(out.vert_properties[:, :3], np.float64), np.asarray(out.tri_verts, np.int64), notes
-
-
-def write_outputs(assembly: Assembly, fragments: list[Fragment], out_dir) -> list[str]:
-    """assembly.glb, and the merged solids: merged.stl is the largest group; when several
-    groups have two or more placed fragments, each also gets merged_<group>.stl.
-    (assembly.json is written last by `assemble`, once the timings are complete.)"""
-    from .io import write_mesh
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    sources = [Path(f.source).resolve() for f in fragments if f.source]
-    for name in ("assembly.json", "assembly.glb", "merged.stl"):
-        if (out / name).resolve() in sources:
-            raise FragmentError(f"{out / name}: refusing to overwrite an input file")
-    atomic_write_bytes(out / "assembly.glb", assembly_glb(assembly, fragments))
-    notes = []
-    placed_groups = [g for g, m in sorted(assembly.group_members().items())
-                     if any(assembly.poses[i] is not None for i in m)]
-    for g in placed_groups:
-        m = assembly.group_members()[g]
-        v, f, why = merged_solid([fragments[i] for i in m], [assembly.poses[i] for i in m])
-        notes += why
-        if len(f) == 0:
-            continue
-        if g == placed_groups[0]:
-            write_mesh(out / "merged.stl", v, f)
-        if len(placed_groups) > 1:
-            write_mesh(out / f"merged_{g}.stl", v, f)
-    assembly.stats["merge_notes"] = notes
-    return notes
 
 
 # --- command line ---------------------------------------------------------------------------
@@ -1062,8 +973,8 @@ def cli_main(args) -> int:
         f"{s['fragments'] - s['placed']} unplaced")
     for e in s["errors"]:
         log(f"warning: pair failed: {e}")
-    for note in s.get("merge_notes", []):
-        log(f"note: {note}")
+    for line in grouped_lines("note", s.get("merge_notes", [])):
+        log(line)
     log("  " + "  ".join(f"{k} {v:.2f} s" for k, v in result.timings.items()))
     log(f"wrote {Path(args.out) / 'assembly.json'}, assembly.glb, merged.stl")
     return 0

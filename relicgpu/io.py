@@ -11,6 +11,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
+import sys
 import tempfile
 import time
 import warnings
@@ -26,6 +28,10 @@ LIDAR_SUFFIXES = {".las", ".laz"}
 FRAGMENT_SUFFIXES = MESH_SUFFIXES | POINT_SUFFIXES
 # A body of less than this fraction of the largest body's area in its file is a crumb: dropped.
 CRUMB_FRACTION = 0.01
+# Bodies of more faces than THIN_ABOVE are thinned at load to about THIN_TO faces (the working
+# resolution: prepare samples a few thousand points a fragment); outputs reload the original.
+THIN_ABOVE = 1_000_000
+THIN_TO = 200_000
 
 
 class FragmentError(ValueError):
@@ -40,6 +46,8 @@ class Fragment:
     faces: np.ndarray  # (F,3) int32
     source: str | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)
+    # faces of the body in its file when it was thinned at load (else 0): outputs read it again
+    thinned_from: int = field(default=0, kw_only=True)
 
     @property
     def file(self) -> str:
@@ -123,13 +131,15 @@ def _checked_arrays(label: str, vertices, faces) -> tuple[np.ndarray, np.ndarray
     return v, f.astype(np.int64)
 
 
-def split_bodies(name: str, label: str, source: str | None, parts) -> tuple[list[Fragment], list[dict], list[str]]:
+def split_bodies(name: str, label: str, source: str | None, parts, thin_above: int | None = None,
+                 ) -> tuple[list[Fragment], list[dict], list[str]]:
     """Split meshes into bodies, drop the crumbs and clean each body kept into a Fragment.
 
     A crumb is a body of less than CRUMB_FRACTION of the largest body's area (over all
     `parts`, e.g. the meshes of one GLB scene). Bodies are numbered by decreasing area;
     when more than one is kept they are named ``name#1``, ``name#2``, ... and the crumbs
-    take the numbers after them. Returns (fragments, skipped, notes) as
+    take the numbers after them. A body of more than `thin_above` faces is thinned to
+    about THIN_TO faces (`thin`) before cleaning. Returns (fragments, skipped, notes) as
     `fragments_from_arrays`.
     """
     bodies = [(v, f[faces]) for v, f in parts for faces in _body_faces(v, f)]
@@ -141,8 +151,8 @@ def split_bodies(name: str, label: str, source: str | None, parts) -> tuple[list
     kept = [i for i in order if areas[i] >= CRUMB_FRACTION * largest]
     ids = [name] if len(kept) == 1 else [f"{name}#{k}" for k in range(1, len(bodies) + 1)]
     file = Path(source).name if source else name
-    frags = [_clean_body(ids[k], *bodies[i], label if len(kept) == 1 else f"{label} ({ids[k]})", source)
-             for k, i in enumerate(kept)]
+    frags = [_clean_body(ids[k], *bodies[i], label if len(kept) == 1 else f"{label} ({ids[k]})", source,
+                         thin_above) for k, i in enumerate(kept)]
     skipped = [{"file": file, "name": f"{name}#{k + 1}",
                 "reason": f"{label}: body {k + 1} of {len(bodies)} is a crumb ({len(bodies[i][1])} faces, "
                           f"{100 * areas[i] / largest:.2g}% of the largest body's area); dropped"}
@@ -154,14 +164,18 @@ def split_bodies(name: str, label: str, source: str | None, parts) -> tuple[list
     return frags, skipped, notes
 
 
-def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str | None) -> Fragment:
-    """One body's faces -> a Fragment: degenerate and duplicate faces and unused vertices removed."""
+def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str | None,
+                thin_above: int | None = None) -> Fragment:
+    """One body's faces -> a Fragment: thinned where it has more than `thin_above` faces;
+    degenerate and duplicate faces and unused vertices removed."""
     notes: list[str] = []
-    # Degenerate faces: a repeated vertex index or zero area.
-    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    area2 = np.linalg.norm(cross, axis=1)
-    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
-    degenerate = repeated | (area2 <= 1e-14 * max(1.0, float(np.abs(v).max())) ** 2)
+    thinned_from = 0
+    if thin_above is not None and len(f) > thin_above:
+        thinned_from = len(f)
+        v, f = thin(v, f, min(THIN_TO, thin_above), label)
+        notes.append(f"{label}: {thinned_from} faces thinned to {len(f)} for matching (vertex clustering); "
+                     "the outputs carry the original mesh")
+    degenerate = degenerate_faces(v, f)
     # Duplicate faces: the same vertex set, whatever the order.
     key = np.sort(f, axis=1)
     _, first = np.unique(key, axis=0, return_index=True)
@@ -181,7 +195,81 @@ def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str
         notes.append(f"{label}: fell apart into {len(pieces)} bodies once degenerate faces were removed; kept the largest")
     if not is_watertight(f):
         notes.append(f"{label}: the mesh is not watertight (open boundary); accepted, as scans often are")
-    return Fragment(name, v, f.astype(np.int32), source, tuple(notes))
+    return Fragment(name, v, f.astype(np.int32), source, tuple(notes), thinned_from=thinned_from)
+
+
+def thin(v: np.ndarray, f: np.ndarray, target: int, label: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
+    """Thin a mesh to about `target` faces by vertex clustering, with a progress line on stderr.
+
+    Space is cut into cubes of side ``sqrt(2 A / target)`` (A: the surface area, so about
+    `target` faces survive); the vertices of a cube merge at their mean, and faces whose
+    corners fall into fewer than three cubes vanish. Memory stays a few arrays of the input's
+    size.
+
+    Parameters
+    ----------
+    v : (V, 3) float64 vertices
+    f : (F, 3) int faces
+    target : int
+    label : str, names the mesh on the progress line
+
+    Returns
+    -------
+    vertices : (V', 3) float64
+    faces : (F', 3) int64, F' about `target`
+    """
+    t0 = time.perf_counter()
+    print(f"thinning {label}: {len(f):,} faces to about {target:,} ...", file=sys.stderr, flush=True)
+    side = np.sqrt(2.0 * _area(v, f) / target)
+    for _ in range(4):  # a cube side that lands within 25% of the target
+        vv, ff = _cluster(v, f, side)
+        if 0.75 * target <= len(ff) <= 1.25 * target:
+            break
+        side *= np.sqrt(len(ff) / target)
+    print(f"thinning {label}: {len(f):,} -> {len(ff):,} faces in {time.perf_counter() - t0:.1f} s",
+          file=sys.stderr, flush=True)
+    return vv, ff
+
+
+def _cluster(v: np.ndarray, f: np.ndarray, side: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex clustering on cubes of `side`: (mean vertex per cube, faces spanning three cubes)."""
+    cell = np.floor((v - v.min(0)) / side).astype(np.int64)
+    dims = cell.max(0) + 1
+    _, cluster = np.unique((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2], return_inverse=True)
+    cluster = cluster.ravel()
+    del cell
+    n = int(cluster.max()) + 1
+    counts = np.bincount(cluster, minlength=n)[:, None]
+    centres = np.stack([np.bincount(cluster, weights=v[:, k], minlength=n) for k in range(3)], 1) / counts
+    g = cluster[f]
+    g = g[(g[:, 0] != g[:, 1]) & (g[:, 1] != g[:, 2]) & (g[:, 0] != g[:, 2])]
+    _, first = np.unique(np.sort(g, axis=1), axis=0, return_index=True)
+    return centres, g[np.sort(first)]
+
+
+def degenerate_faces(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Faces with a repeated vertex index or no area to speak of, whatever the units and origin.
+
+    Parameters
+    ----------
+    v : (V, 3) float64 vertex coordinates
+    f : (F, 3) int vertex indices
+
+    Returns
+    -------
+    (F,) bool: True for a degenerate face.
+
+    A face is degenerate when twice its area is under ``1e-14 * diag**2`` (diag: the
+    diagonal of the mesh's bounding box), or under what rounding of the coordinates can
+    make of a flat triangle (a few ulps of the largest coordinate times diag): a mesh
+    scaled by 1e-3 and moved 400 units away keeps the same faces.
+    """
+    diag = float(np.linalg.norm(v.max(0) - v.min(0))) if len(v) else 0.0
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    area2 = np.linalg.norm(cross, axis=1)
+    rounding = 8 * np.finfo(np.float64).eps * float(np.abs(v).max(initial=0.0)) * diag
+    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    return repeated | (area2 <= max(1e-14 * diag ** 2, rounding))
 
 
 def _used_vertices(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -214,7 +302,9 @@ def _body_faces(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
     if len(faces) == 0:
         return []
     # Merge coincident vertices first: many formats (STL) store each triangle apart.
-    _, inverse = np.unique(np.round(vertices, 12), axis=0, return_inverse=True)
+    low = vertices.min(0)
+    diag = float(np.linalg.norm(vertices.max(0) - low)) or 1.0
+    _, inverse = np.unique(np.round((vertices - low) / diag, 12), axis=0, return_inverse=True)
     f = inverse.ravel()[faces]
     n = len(inverse)
     edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
@@ -248,7 +338,8 @@ def load_fragment(path, name: str | None = None) -> Fragment:
     return _largest_of(frags, skipped, notes, str(path))
 
 
-def load_fragments(path, name: str | None = None) -> tuple[list[Fragment], list[dict], list[str]]:
+def load_fragments(path, name: str | None = None, thin_above: int | None = THIN_ABOVE,
+                   ) -> tuple[list[Fragment], list[dict], list[str]]:
     """Read one file into a Fragment per body (or per mesh of a scene), crumbs dropped.
 
     Parameters
@@ -257,6 +348,9 @@ def load_fragments(path, name: str | None = None) -> tuple[list[Fragment], list[
         A mesh (STL, PLY, OBJ, OFF, GLB/glTF) or point-cloud file.
     name : str, optional
         The id of the fragment (default: the file stem); bodies are ``name#k``.
+    thin_above : int or None
+        Bodies of more faces are thinned to about THIN_TO faces (`thin`; the fragment's
+        ``thinned_from`` and a note say so); None keeps every face.
 
     Returns
     -------
@@ -288,7 +382,7 @@ def load_fragments(path, name: str | None = None) -> tuple[list[Fragment], list[
     if suffix not in MESH_SUFFIXES:
         raise FragmentError(f"{label}: unknown format {suffix or '(no extension)'!r}; use STL, PLY, OBJ, OFF or GLB")
     parts = [_checked_arrays(label, v, f) for v, f in _read_meshes(p, label)]
-    return split_bodies(name, label, label, parts)
+    return split_bodies(name, label, label, parts, thin_above)
 
 
 def _read_meshes(p: Path, label: str) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -347,8 +441,9 @@ class Batch:
     seconds: float = 0.0  # time taken to read it
 
     def messages(self) -> list[str]:
-        """One terminal line per decision."""
-        return [f"skipped: {s['reason']}" for s in self.skipped] + [f"note: {n}" for n in self.notes]
+        """The terminal lines: one per kind of decision (see `grouped_lines`; the JSON lists each)."""
+        return (grouped_lines("skipped", [s["reason"] for s in self.skipped])
+                + grouped_lines("note", self.notes))
 
     def require(self, n: int = 2) -> None:
         """Raise FragmentError when fewer than n fragments could be read."""
@@ -356,6 +451,29 @@ class Batch:
             unread = [s for s in self.skipped if "name" not in s]
             raise FragmentError(f"only {len(self.fragments)} fragment(s) could be read, {n} are needed"
                                 + (f" ({len(unread)} file(s) skipped, first: {unread[0]['reason']})" if unread else ""))
+
+
+def grouped_lines(prefix: str, messages: list[str], shown: int = 3) -> list[str]:
+    """Terminal lines for messages ``"<file>: <what>"``: one line per kind of `what` (its
+    numbers and parentheses aside), the first message in full and a count of the others like it.
+
+    ["a.ply: not watertight", "b.ply: not watertight"] -> ["note: a.ply: not watertight
+    (and 1 more like it: b.ply)"]
+    """
+    kinds: dict[str, list[str]] = {}
+    for m in messages:
+        what = m.split(": ", 1)[-1]
+        kind = re.sub(r"\d+(?:\.\d+)?(?:e[-+]?\d+)?", "#", re.sub(r"\([^)]*\)", "()", what))
+        kinds.setdefault(kind, []).append(m)
+    lines = []
+    for group in kinds.values():
+        line = f"{prefix}: {group[0]}"
+        if len(group) > 1:
+            others = [m.split(": ", 1)[0] for m in group[1:]]
+            listed = ", ".join(others[:shown]) + (", ..." if len(others) > shown else "")
+            line += f" (and {len(others)} more like it: {listed}; all listed in the JSON output)"
+        lines.append(line)
+    return lines
 
 
 def fragment_ids(files) -> list[str]:

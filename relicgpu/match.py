@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import atomic_write_bytes, atomic_write_json, ensure_not_input, load_fragment
+from .io import atomic_write_bytes, atomic_write_json, ensure_not_input, grouped_lines, load_fragment
+from .outputs import scene_glb
 
 COLOURS = [(214, 120, 72, 255), (72, 140, 214, 255)]
 
@@ -38,8 +39,8 @@ def cli_main(args) -> int:
     t0 = time.perf_counter()
     a = load_fragment(args.a)
     b = load_fragment(args.b)
-    for note in a.notes + b.notes:
-        log(f"note: {note}")
+    for line in grouped_lines("note", list(a.notes + b.notes)):
+        log(line)
     log(f"loaded {a.name} ({len(a.vertices)} vertices) and {b.name} ({len(b.vertices)} vertices) in {time.perf_counter() - t0:.2f} s")
     try:
         backend = resolve(args.backend)
@@ -65,11 +66,5 @@ def cli_main(args) -> int:
 
 
 def pair_glb(a, b, transform: np.ndarray) -> bytes:
-    import trimesh
-
-    scene = trimesh.Scene()
-    for frag, colour, pose in ((a, COLOURS[0], np.eye(4)), (b, COLOURS[1], transform)):
-        mesh = trimesh.Trimesh(frag.vertices, frag.faces, process=False)
-        mesh.visual.face_colors = np.tile(colour, (len(frag.faces), 1))
-        scene.add_geometry(mesh, node_name=frag.name, geom_name=frag.name, transform=pose)
-    return scene.export(file_type="glb")
+    """Both fragments in two colours, b moved by `transform` (point clouds as points)."""
+    return scene_glb([(a, COLOURS[0], np.eye(4)), (b, COLOURS[1], transform)])

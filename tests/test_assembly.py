@@ -249,6 +249,27 @@ def test_part_accuracy_counts_a_moved_fragment_wrong(broken):
 
 # --- end to end on a synthetic object ------------------------------------------------------
 
+def test_every_matched_pair_says_whether_it_was_accepted_and_why(broken):
+    """issue 15 item 2: assembly.json lists every candidate pair matched in full, verified or
+    not, each with `accepted`, `used` and a `reason` (the verification's, or the forest's)."""
+    result = assemble(broken.fragments, backend="numpy", progress=False)
+    doc = json.loads(result.to_json())
+    names = result.names
+    assert sorted((m["a"], m["b"]) for m in doc["matches"]) == sorted((names[i], names[j]) for i, j in result.candidates)
+    verify_words = ("overlap", "residual", "interpenetration", "no fracture contours", "no consistent", "error")
+    for m in doc["matches"]:
+        assert isinstance(m["accepted"], bool) and isinstance(m["used"], bool) and m["reason"], m
+        if not m["accepted"]:
+            assert not m["used"] and m["reason"].startswith("not verified: ")
+            assert any(w in m["reason"] for w in verify_words), m["reason"]
+        elif not m["used"]:
+            assert m["reason"].startswith("refused: "), m["reason"]
+        else:
+            assert m["reason"].startswith("used: "), m["reason"]
+    assert any(not m["accepted"] for m in doc["matches"]), "expected a pair that failed verification"
+    assert [m for m in doc["matches"] if m["accepted"]] == [m.to_dict(names) for m in result.matches]
+
+
 def test_objects_restrict_matching_to_pairs_within_one_class(broken):
     labels = [0, 0, 1, 1]
     result = assemble(broken.fragments, backend="numpy", progress=False, objects=labels)
@@ -266,6 +287,7 @@ def test_assemble_small_synthetic_object(local_result, synth_dir):
     assert result.n_groups == 1
     doc = result.to_dict()
     assert set(doc) == {"version", "fragments", "matches", "backend", "engine", "timings", "skipped", "notes"}
+    assert all(m["accepted"] and m["reason"] for m in doc["matches"][:len(result.matches)])
     assert [f["name"] for f in doc["fragments"]] == [f.name for f in frags]
     assert [f["file"] for f in doc["fragments"]] == [f.file for f in frags]  # issue 15: the file name as given
 

@@ -96,3 +96,24 @@ def test_atomic_write_gives_the_usual_file_mode(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert (target.stat().st_mode & 0o777) == (0o666 & ~umask)
+
+
+def test_degenerate_faces_do_not_depend_on_units_or_origin():
+    # issue 15 item 3: the zero-area cut is relative to the mesh's own size, not to 1 unit or the origin
+    sphere = trimesh.creation.icosphere(subdivisions=5)  # faces ~0.04 across: at 1e-3 the old absolute cut took them
+    v = sphere.vertices
+    n = len(v)
+    mid = 0.5 * (v[0] + v[1])  # a flat triangle: a vertex on the middle of an edge
+    near = v[2] + 1e-15  # a sliver: twice its area under 1e-14 of the size squared
+    verts = np.vstack([v, mid, near])
+    extra = [[0, 1, n], [2, n + 1, 3], [4, 4, 5]]
+    faces = np.vstack([sphere.faces, extra])
+    kept = []
+    for scale, shift in ((1.0, 0.0), (1e-3, 400.0), (1e3, -2e4)):
+        with pytest.warns(UserWarning, match="degenerate"):
+            frag = fragment_from_arrays("s", verts * scale + shift, faces)
+        np.testing.assert_allclose((frag.vertices - shift) / scale, v, atol=1e-6)
+        kept.append(frag.faces)
+    assert len(kept[0]) == len(sphere.faces)  # the three added faces dropped, every real one kept
+    for f in kept[1:]:
+        np.testing.assert_array_equal(f, kept[0])

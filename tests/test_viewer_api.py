@@ -654,3 +654,50 @@ def test_real_prepare_and_match_through_the_api(tmp_path, monkeypatch):
     moved = fb.vertices @ t[:3, :3].T + t[:3, 3]
     true = fb.vertices @ expected[:3, :3].T + expected[:3, 3]
     assert np.sqrt(((moved - true) ** 2).sum(1).mean()) < 0.01 * fb.size
+
+
+# --- a file of several bodies -------------------------------------------------------------
+
+def test_each_body_of_a_file_is_its_own_fragment(box):
+    """A file holding two bodies lists as two fragments, each with its own mesh, pose and contours."""
+    ws, truth = box
+    frag_dir = truth["dir"] / "fragments"
+    small = trimesh.creation.box(extents=(0.3, 0.3, 0.3))
+    big = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    big.apply_translation([4.0, 0, 0])
+    trimesh.util.concatenate([small, big]).export(frag_dir / "two.ply")
+    pose_1, pose_2 = np.eye(4), np.eye(4)
+    pose_1[:3, 3], pose_2[:3, 3] = [1, 2, 3], [-4, 0, 0]
+    doc = json.loads((truth["dir"] / "assembly" / "assembly.json").read_text())
+    doc["fragments"] += [{"name": "two#1", "file": "two.ply", "pose": pose_1.tolist(), "group": 1},
+                         {"name": "two#2", "file": "two.ply", "pose": pose_2.tolist(), "group": 2}]
+    doc["matches"].append({"a": "two#1", "b": "two#2", "transform": np.eye(4).tolist(), "score": 0.2,
+                           "rmse": 0.1, "overlap": 0.1, "used": False})
+    (truth["dir"] / "assembly" / "assembly.json").write_text(json.dumps(doc))
+
+    prepared = []
+    client = create_app(ws, prepare=lambda f, scale: prepared.append(f.name) or SimpleNamespace(
+        fragment=f, face_region=np.zeros(len(f.faces), np.int64), region_is_fracture=np.array([False]),
+        contours=[], timings={})).test_client()
+    body = client.get("/api/cases/box/fragments").get_json()
+    by_name = {f["name"]: f for f in body["fragments"]}
+    assert list(by_name) == truth["names"] + ["two#1", "two#2"]
+    assert by_name["two#1"]["file"] == by_name["two#2"]["file"] == "two.ply"
+    np.testing.assert_allclose(by_name["two#1"]["pose"], pose_1)
+    np.testing.assert_allclose(by_name["two#2"]["pose"], pose_2)
+    assert (by_name["two#1"]["group"], by_name["two#2"]["group"]) == (1, 2)
+    assert ("two#1", "two#2", False) in [(m["a"], m["b"], m["used"])
+                                          for m in client.get("/api/cases/box/matches").get_json()["matches"]]
+
+    # the mesh of each body is that body (the sphere is the larger: #1), not the file's first
+    for name, mesh in (("two#1", big), ("two#2", small)):
+        r = client.get(f"/api/cases/box/fragments/{name.replace('#', '%23')}/mesh")
+        assert r.status_code == 200, r.get_json()
+        m = r.get_json()
+        assert m["name"] == name and m["n_faces"] == len(mesh.faces)
+        v = np.frombuffer(base64.b64decode(m["vertices"]), "<f4").reshape(-1, 3)
+        np.testing.assert_allclose(v.mean(0), mesh.vertices.mean(0), atol=1e-5)
+        c = client.get(f"/api/cases/box/fragments/{name.replace('#', '%23')}/contours").get_json()
+        assert c["name"] == name and c["n_faces"] == len(mesh.faces)
+    assert prepared == ["two#1", "two#2"]  # each body prepared on its own
+    assert client.get("/api/cases/box/fragments/two/mesh").status_code == 404

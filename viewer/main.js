@@ -326,8 +326,10 @@ async function loadMatches(caseId, stale) {
     name.textContent = `${m.a} ↔ ${m.b}`;
     const score = document.createElement('span');
     score.className = 'score';
-    score.textContent = `${fmt(m.score)}${m.used ? '' : ' (unused)'}`;
-    li.title = `score ${fmt(m.score)}, rmse ${fmt(m.rmse)}, overlap ${fmt(m.overlap)}; click to show the pair alone`;
+    const verdict = m.used ? '' : (m.accepted === false ? ' (rejected)' : ' (unused)');
+    score.textContent = `${fmt(m.score)}${verdict}`;
+    li.title = `score ${fmt(m.score)}, rmse ${fmt(m.rmse)}, overlap ${fmt(m.overlap)}`
+      + `${m.reason ? `; ${m.reason}` : ''}; click to show the pair alone`;
     li.append(name, score);
     li.addEventListener('click', () => {
       for (const x of ui.matchList.children) x.classList.toggle('active', x === li);
@@ -336,7 +338,8 @@ async function loadMatches(caseId, stale) {
       setStatus(ui.pickStatus, '');
       showPair(m.a, m.b, m.transform);
       ui.matchResult.innerHTML = '';
-      ui.matchResult.append(describeMatch({ ...m, accepted: m.used, reason: m.used ? 'used in the assembly' : 'not used in the assembly' }));
+      const reason = m.reason || (m.used ? 'used in the assembly' : 'not used in the assembly');
+      ui.matchResult.append(describeMatch({ ...m, accepted: m.used, reason }));
     });
     ui.matchList.append(li);
   }

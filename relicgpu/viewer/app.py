@@ -7,8 +7,9 @@ workspace is. The API (all JSON; errors are `{"error": message}` with a 4xx or
 5xx status):
 
     GET  /api/cases                               the cases of the workspace
-    GET  /api/cases/<case>/fragments              fragments, poses, groups, object groups, capabilities
-    GET  /api/cases/<case>/fragments/<name>/mesh  vertices/faces (base64 float32/uint32)
+    GET  /api/cases/<case>/fragments              fragments (one per body: a file of several bodies
+                                                  gives id#1, id#2, ...), poses, groups, object groups
+    GET  /api/cases/<case>/fragments/<name>/mesh  that fragment's vertices/faces (base64 float32/uint32)
     GET  /api/cases/<case>/fragments/<name>/contours  segmentation and contours (relicgpu.prepare)
     GET  /api/cases/<case>/matches                the pair matches of assembly.json
     GET  /api/cases/<case>/files/<file>           assembly.json, assembly.glb or merged.stl
@@ -36,9 +37,9 @@ from flask import Flask, Response, jsonify, request, send_file
 from werkzeug.exceptions import HTTPException
 from werkzeug.security import safe_join
 
-from ..io import FragmentError, load_fragment
+from ..io import FragmentError, load_fragments
 from .jobs import FINAL_STATES, JobBusy, JobRunner
-from .workspace import AssemblyFileError, Workspace, WorkspaceError
+from .workspace import AssemblyFileError, Workspace, WorkspaceError, split_entries
 
 MAX_BODY_BYTES = 64 * 1024  # requests carry a few names and numbers
 CACHE_FRAGMENTS = 128  # loaded meshes, and prepared fragments, kept in memory
@@ -318,27 +319,46 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
             raise ApiError(404, f"unknown case {case_id!r}")
         return case
 
+    def file_fragments(entry):
+        """The fragments of an entry's file (io.load_fragments: one per body), loaded once."""
+        def load():
+            try:
+                return load_fragments(entry.path, name=entry.name)[0]
+            except FragmentError as exc:
+                raise ApiError(422, str(exc).replace(str(ws.root) + os.sep, "")) from None
+        return meshes.get(_file_key(entry.path), load)
+
+    def body_names(entry):
+        try:
+            return [f.name for f in file_fragments(entry)]
+        except ApiError:  # unreadable: the file's own entry stays, its mesh request says why
+            return None
+
+    def entries_of(case):
+        """One entry per fragment of a case: per body of each file (files are read once)."""
+        return split_entries(ws.fragments(case), body_names)
+
     def entry_or_404(case, name):
-        entries = ws.fragments(case)
+        entries = entries_of(case)
         if not isinstance(name, str) or name not in entries:
             raise ApiError(404, f"unknown fragment {name!r} in case {case.id!r}")
         return entries[name]
 
     def fragment_of(entry):
-        def load():
-            try:
-                return load_fragment(entry.path, name=entry.name)
-            except FragmentError as exc:
-                raise ApiError(422, str(exc).replace(str(ws.root) + os.sep, "")) from None
-        return meshes.get(_file_key(entry.path), load)
+        return file_fragments(entry)[entry.body]
 
     def case_scale(case) -> float:
-        entries = list(ws.fragments(case).values())
-        key = tuple(_file_key(e.path) for e in entries)  # stat only: no mesh reloads once known
+        files = list(ws.fragments(case).values())
+        key = tuple(_file_key(e.path) for e in files)  # stat only: no mesh reloads once known
         with scales_lock:
             if key in scales:
                 return scales[key]
-        sizes = [fragment_of(e).size for e in entries]
+        sizes = []
+        for e in files:
+            try:
+                sizes += [f.size for f in file_fragments(e)]
+            except ApiError:
+                continue
         scale = float(np.median(sizes)) if sizes else 1.0
         with scales_lock:
             if len(scales) > 256:
@@ -355,7 +375,7 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
         def compute():
             with compute_slots:
                 return hooks["prepare"](frag, scale)
-        return prepared_cache.get(_file_key(entry.path) + (scale,), compute)
+        return prepared_cache.get(_file_key(entry.path) + (entry.body, scale), compute)
 
     def json_body() -> dict:
         if not request.is_json:
@@ -402,7 +422,8 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
         for case in ws.cases().values():
             out.append({
                 "id": case.id,
-                "fragments": len(ws.fragments(case)),
+                "fragments": len(ws.fragments(case)),  # files: a file of several bodies lists them all
+                                                        # under /fragments, once read
                 "assembled": ws.assembly_file(case, "assembly.json") is not None,
                 "truth": (case.path / "truth.json").is_file(),
             })
@@ -413,7 +434,7 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
     @app.get("/api/cases/<case_id>/fragments")
     def api_fragments(case_id):
         case = case_or_404(case_id)
-        entries = ws.fragments(case)
+        entries = entries_of(case)
         assembly, error, notes = None, None, []
         try:
             assembly = ws.read_assembly(case, entries)
@@ -435,6 +456,7 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
                 "index": i,
                 "name": e.name,
                 "file": e.file,
+                "body": e.body,
                 "bytes": e.path.stat().st_size,
                 "pose": pose,
                 "group": assembly.groups.get(e.name) if assembly else None,
@@ -469,7 +491,7 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
     def api_matches(case_id):
         case = case_or_404(case_id)
         try:
-            assembly = ws.read_assembly(case, ws.fragments(case))
+            assembly = ws.read_assembly(case, entries_of(case))
         except AssemblyFileError as exc:
             raise ApiError(422, str(exc)) from None
         if assembly is None:

@@ -37,9 +37,29 @@ class AssemblyFileError(ValueError):
 
 @dataclass(frozen=True)
 class FragmentEntry:
-    name: str  # the id in the API: io.fragment_ids (the stem; the whole file name where stems collide)
+    name: str  # the id in the API: io.fragment_ids (the stem; the whole file name where stems collide), id#k per body
     file: str  # file name inside fragments/
     path: Path  # resolved, inside the workspace
+    body: int = 0  # which of the file's fragments (io.load_fragments order) this entry is
+
+
+def split_entries(entries: dict[str, FragmentEntry], body_names) -> dict[str, FragmentEntry]:
+    """One entry per fragment: a file of several bodies becomes one entry per body.
+
+    Parameters
+    ----------
+    entries : dict
+        The file entries of a case (`Workspace.fragments`).
+    body_names : callable
+        entry -> the names of the fragments that file loads into (io.load_fragments order),
+        or None where it cannot be read (the file's entry stays, to report the fault).
+    """
+    out: dict[str, FragmentEntry] = {}
+    for entry in entries.values():
+        names = body_names(entry) or [entry.name]
+        for k, name in enumerate(names):
+            out[name] = FragmentEntry(name, entry.file, entry.path, k)
+    return out
 
 
 @dataclass(frozen=True)
@@ -61,7 +81,7 @@ class AssemblyView:
     """The parts of assembly.json the viewer uses, keyed by fragment name."""
     poses: dict  # name -> 4x4 nested list, or None when unplaced
     groups: dict  # name -> int or None (assembled piece)
-    matches: list  # [{"index", "a", "b", "transform", "score", "rmse", "overlap", "used"}]
+    matches: list  # [{"index", "a", "b", "transform", "score", "rmse", "overlap", "used", "accepted", "reason"}]
     meta: dict = field(default_factory=dict)  # backend, engine, timings
     notes: tuple = ()
     objects: dict = field(default_factory=dict)  # name -> int or None: object group (assemble --group)
@@ -124,6 +144,7 @@ class Workspace:
         return self.cases().get(case_id)
 
     def fragments(self, case: Case) -> dict[str, FragmentEntry]:
+        """One entry per fragment file of a case, by id (see `split_entries` for one per body)."""
         d = case.fragments_dir
         if not _is_dir_inside(d, self.root):
             return {}
@@ -205,12 +226,18 @@ def _entry_for(file_ref, entries: dict[str, FragmentEntry]) -> FragmentEntry | N
     if "#" in file_ref and file_ref.rsplit("#", 1)[0] in entries:
         return entries[file_ref.rsplit("#", 1)[0]]
     base = Path(file_ref.replace("\\", "/")).name
-    for e in entries.values():
-        if e.file == base:
-            return e
-    stem = Path(base).stem
-    hits = [e for e in entries.values() if Path(e.file).stem == stem]
+    # a file name stands for its fragment only where the file holds one (else: which body?)
+    hits = [e for e in entries.values() if e.file == base]
+    if not hits:
+        stem = Path(base).stem
+        hits = [e for e in entries.values() if Path(e.file).stem == stem]
     return hits[0] if len(hits) == 1 else None
+
+
+def _item_entry(item: dict, entries: dict[str, FragmentEntry]) -> FragmentEntry | None:
+    """The entry of a fragments[] item of assembly.json or groups.json: by its name (the id,
+    ``id#k`` for a body of a file of several), else by its file."""
+    return _entry_for(item.get("name"), entries) or _entry_for(item.get("file"), entries)
 
 
 def _matrix4(value, what: str) -> list:
@@ -246,9 +273,10 @@ def parse_assembly(doc, entries: dict[str, FragmentEntry], label: str = "assembl
     for i, item in enumerate(frags):
         if not isinstance(item, dict):
             raise AssemblyFileError(f"{label}: fragments[{i}] must be an object")
-        entry = _entry_for(item.get("file"), entries)
+        entry = _item_entry(item, entries)
         if entry is None:
-            notes.append(f"{label}: fragments[{i}] names {item.get('file')!r}, which is not in fragments/")
+            notes.append(f"{label}: fragments[{i}] names {item.get('name', item.get('file'))!r}, "
+                         "which is not in fragments/")
             continue
         pose = item.get("pose")
         poses[entry.name] = None if pose is None else _matrix4(pose, f"{label}: fragments[{i}].pose")
@@ -274,6 +302,8 @@ def parse_assembly(doc, entries: dict[str, FragmentEntry], label: str = "assembl
             "rmse": _number(m.get("rmse")),
             "overlap": _number(m.get("overlap")),
             "used": bool(m.get("used", False)),
+            "accepted": bool(m.get("accepted", True)),  # older files list only verified matches
+            "reason": m.get("reason") if isinstance(m.get("reason"), str) else None,
         })
     meta = {k: doc[k] for k in ("version", "backend", "engine", "timings") if k in doc}
     return AssemblyView(poses, groups, matches, meta, tuple(notes), objects)
@@ -300,9 +330,10 @@ def parse_groups(doc, entries: dict[str, FragmentEntry], label: str = "groups.js
         if g is None:
             raise AssemblyFileError(f"{label}: fragments[{i}].group must be a whole number >= 0, "
                                     f"got {item.get('group')!r}")
-        entry = _entry_for(item.get("file"), entries)
+        entry = _item_entry(item, entries)
         if entry is None:
-            notes.append(f"{label}: fragments[{i}] names {item.get('file')!r}, which is not in fragments/")
+            notes.append(f"{label}: fragments[{i}] names {item.get('name', item.get('file'))!r}, "
+                         "which is not in fragments/")
             continue
         groups[entry.name] = g
     missing = [n for n, g in groups.items() if g is None]
