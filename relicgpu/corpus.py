@@ -357,7 +357,7 @@ def _rescan(v, f, label, h, noise, wall, faces, rng):
     from scipy.spatial import cKDTree
     from skimage.measure import marching_cubes
 
-    voxel = min(h / 1.5, (wall or 1.0) / 3.5)
+    voxel = min(h / 2.5, (wall or 1.0) / 3.5, 0.01)  # a dense scan: finer than the decimated mesh
     area = float(np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum() / 2)
     exact, normal, face = _surface_samples(v, f, int(min(400_000, 6 * area / voxel ** 2)), rng)
     pts = exact + normal * rng.normal(0.0, noise, (len(exact), 1)) if noise else exact

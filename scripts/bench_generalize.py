@@ -1,0 +1,217 @@
+"""How the pipeline holds on fractures it was not tuned on (issue 16): one row per family.
+
+Families come from `relicgpu.corpus` (fracture kind x scan kind, twelve in all) and the
+../shared/realdata sets with a known answer; the first row, "synth", is the control: the
+project's own generator, where the pipeline was tuned. Per row:
+
+  seg R / seg P   recall and precision of `relicgpu.segment`'s fracture faces (the labels
+                  `pipeline.prepare` uses) against the generator's, counted over all faces
+  pairs right     two-piece objects: `match_pair` accepted, rotation error < 2 degrees and
+                  vertex RMS < 1% of the object size (largest side of its bounding box)
+  rot err         median rotation error of the two-piece matches (accepted or not), degrees
+  part acc        multi-piece objects through `relicgpu.assemble`: `evaluate.score` part
+                  accuracy at 1% of the object size
+  touch R         recall of the touching pairs among the used matches (multi-piece objects)
+
+    python scripts/bench_generalize.py --quick                       # a few minutes on 2 cores
+    python scripts/bench_generalize.py --seeds 0,1,2 --json gen.json # the full table
+    python scripts/bench_generalize.py --families voronoi-noisy --realdata none --backend warp-cpu
+
+A progress line per case goes to stderr; --dry builds the cases and checks their labels only.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+import sys
+import time
+
+import numpy as np
+
+from relicgpu import corpus
+from relicgpu.evaluate import relative_pose_error, score
+from relicgpu.icp import invert
+from relicgpu.params import Params
+
+QUICK = {"seeds": "0", "faces": 3000, "multi_faces": 1500, "pieces": "5", "realdata_assemble": False}
+FULL = {"seeds": "0,1,2", "faces": 6000, "multi_faces": 3000, "pieces": "5,8", "realdata_assemble": True}
+CONTROL = "synth"  # a control row: relicgpu.synth's own breaks (vase, torso, slab by seed; noise 0.0005)
+
+
+def make_case(family: str, pieces: int | None, seed: int, faces: int):
+    """The SynthResult of one case: a corpus family, the synth control, or a realdata set (pieces None)."""
+    if pieces is None:
+        return corpus.realdata(family, seed)
+    if family == CONTROL:
+        from relicgpu import synth
+        return synth.generate(synth.SHAPES[seed % 3], pieces, seed, faces, noise=0.0005, progress=False)
+    return corpus.generate(family, pieces, seed, faces)
+
+
+def segmentation_counts(result, params: Params, backend) -> dict:
+    """True positives, predicted and true fracture faces of `segment` over all fragments."""
+    from relicgpu.segment import segment
+
+    tp = pred = true = faces = 0
+    for frag, truth in zip(result.fragments, result.fracture_faces):
+        labels = segment(frag.vertices, frag.faces, params, frag.size, backend).fracture_faces
+        tp += int(np.count_nonzero(labels & truth))
+        pred += int(np.count_nonzero(labels))
+        true += int(np.count_nonzero(truth))
+        faces += len(truth)
+    return {"tp": tp, "pred": pred, "true": true, "faces": faces}
+
+
+def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(a[:3, :3] @ b[:3, :3].T) - 1) / 2, -1, 1))))
+
+
+def pair_case(result, params: Params, backend) -> dict:
+    """match_pair on a two-piece object: b = fragment 1 carried onto a = fragment 0."""
+    from relicgpu.pipeline import match_pair
+
+    size = corpus.object_size(result)
+    a, b = result.fragments
+    m = match_pair(a, b, params, backend)
+    true = invert(result.poses[0]) @ result.poses[1]
+    rot = rotation_error_deg(m.transform, true)
+    rms = relative_pose_error(b.vertices, m.transform, result.poses[0], result.poses[1]) / size
+    return {"accepted": bool(m.accepted), "rotation_error_deg": rot, "rms": rms, "reason": m.reason,
+            "right": bool(m.accepted and rot < 2.0 and rms < 0.01)}
+
+
+def assembly_case(result, params: Params, backend, workers: int) -> dict:
+    from relicgpu.assembly import assemble
+
+    size = corpus.object_size(result)
+    asm = assemble(list(result.fragments), params, backend, engine="local", workers=workers, progress=False)
+    index = {f.name: i for i, f in enumerate(result.fragments)}
+    order = [index[n] for n in asm.names]  # the assembly's fragments by name (it may reorder)
+    at = {n: k for k, n in enumerate(asm.names)}
+    touching = [(at[result.fragments[i].name], at[result.fragments[j].name]) for i, j in result.touching
+                if result.fragments[i].name in at and result.fragments[j].name in at]
+    used = [(m.a, m.b, np.asarray(m.transform)) for m in asm.matches if m.used]
+    s = score([result.fragments[k].vertices for k in order], list(asm.poses), list(asm.groups),
+              [result.poses[k] for k in order], touching, used, unit=size)
+    return {"part_accuracy": s.part_accuracy, "touching_recall": s.pair_recall, "used": s.n_used,
+            "touching": s.n_touching, "verified": len(asm.matches), "groups": asm.n_groups,
+            "fragments_assembled": len(asm.names)}
+
+
+def run(args) -> dict:
+    from relicgpu.backends import resolve
+
+    preset = QUICK if args.quick else FULL
+    seeds = [int(s) for s in (args.seeds or preset["seeds"]).split(",")]
+    pieces = [int(p) for p in (args.pieces or preset["pieces"]).split(",") if int(p) > 1]
+    families = ((CONTROL,) + corpus.FAMILIES if args.families == "all" else
+                [f for f in args.families.split(",") if f])
+    realdata = (list(corpus.REALDATA_SETS) if args.realdata == "all" else
+                [] if args.realdata == "none" else args.realdata.split(","))
+    faces = args.faces or preset["faces"]
+    multi_faces = args.multi_faces or preset["multi_faces"]
+    params = Params()
+    backend = resolve(args.backend)
+    plan = [(fam, seed, 2) for fam in families for seed in seeds]
+    plan += [(fam, seed, p) for fam in families for seed in seeds for p in pieces]
+    plan += [(name, seed, None) for name in realdata for seed in seeds[:1]]
+    cases = []
+    for k, (fam, seed, n) in enumerate(plan, 1):
+        t0 = time.perf_counter()
+        case = {"family": fam, "seed": seed, "pieces": n}
+        try:
+            result = make_case(fam, n, seed, faces if n == 2 else multi_faces)
+        except FileNotFoundError as exc:
+            print(f"[{k}/{len(plan)}] {fam}: skipped ({exc})", file=sys.stderr, flush=True)
+            continue
+        case["pieces"] = len(result.fragments)
+        case["faces_per_piece"] = float(np.mean([len(f.faces) for f in result.fragments]))
+        case["true_share"] = float(np.mean(np.concatenate(result.fracture_faces)))
+        case["generate_s"] = time.perf_counter() - t0
+        line = f"{case['pieces']} pcs x {case['faces_per_piece']:.0f} faces, true fracture {case['true_share']:.2f}"
+        if not args.dry:
+            case["seg"] = segmentation_counts(result, params, backend)
+            c = case["seg"]
+            line += f", seg R {c['tp'] / max(c['true'], 1):.2f} P {c['tp'] / max(c['pred'], 1):.2f}"
+            if n == 2:
+                case["pair"] = pair_case(result, params, backend)
+                p = case["pair"]
+                line += (f", pair {'accepted' if p['accepted'] else 'rejected'} rot {p['rotation_error_deg']:.1f} deg "
+                         f"rms {p['rms']:.3f} -> {'right' if p['right'] else 'wrong'}")
+            elif n is not None or (args.realdata_assemble if args.realdata_assemble is not None
+                                   else preset["realdata_assemble"]):
+                case["assembly"] = assembly_case(result, params, backend, args.workers)
+                a = case["assembly"]
+                line += (f", part acc {a['part_accuracy']:.2f}, touching recall {a['touching_recall']:.2f} "
+                         f"({a['used']} used of {a['verified']} verified)")
+        case["time_s"] = time.perf_counter() - t0
+        print(f"[{k}/{len(plan)}] {fam} seed {seed}: {line} ({case['time_s']:.1f} s)", file=sys.stderr, flush=True)
+        cases.append(case)
+    return {"command": " ".join(["python"] + sys.argv), "date": datetime.date.today().isoformat(),
+            "backend": backend.name, "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
+            "rows": table_rows(cases), "cases": cases}
+
+
+def table_rows(cases: list) -> list[dict]:
+    rows = []
+    for fam in dict.fromkeys(c["family"] for c in cases):
+        cs = [c for c in cases if c["family"] == fam]
+        seg = [c["seg"] for c in cs if "seg" in c]
+        pairs = [c["pair"] for c in cs if "pair" in c]
+        asm = [c["assembly"] for c in cs if "assembly" in c]
+        tp, pred, true = (sum(s[k] for s in seg) for k in ("tp", "pred", "true"))
+        rows.append({
+            "family": fam, "objects": len(cs), "faces_per_piece": float(np.mean([c["faces_per_piece"] for c in cs])),
+            "true_share": float(np.mean([c["true_share"] for c in cs])),
+            "seg_recall": tp / true if seg and true else None, "seg_precision": tp / pred if seg and pred else None,
+            "pairs_right": sum(p["right"] for p in pairs), "pairs": len(pairs),
+            "rotation_error_deg": float(np.median([p["rotation_error_deg"] for p in pairs])) if pairs else None,
+            "part_accuracy": float(np.mean([a["part_accuracy"] for a in asm])) if asm else None,
+            "touching_recall": float(np.mean([a["touching_recall"] for a in asm])) if asm else None,
+            "multi_objects": len(asm), "time_s": float(sum(c["time_s"] for c in cs))})
+    return rows
+
+
+def format_table(rows: list[dict]) -> str:
+    f = lambda x, spec=".2f": "-" if x is None else format(x, spec)  # noqa: E731
+    head = "| family | objects | faces/piece | true fracture | seg R | seg P | pairs right | rot err deg | part acc | touch R | time s |"
+    lines = [head, "|" + "---|" * 11]
+    for r in rows:
+        pairs = f"{r['pairs_right']}/{r['pairs']}" if r["pairs"] else "-"
+        lines.append(f"| {r['family']} | {r['objects']} | {r['faces_per_piece']:.0f} | {r['true_share']:.2f} | "
+                     f"{f(r['seg_recall'])} | {f(r['seg_precision'])} | {pairs} | {f(r['rotation_error_deg'], '.1f')} | "
+                     f"{f(r['part_accuracy'])} | {f(r['touching_recall'])} | {r['time_s']:.0f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--families", default="all",
+                    help=f"comma list or 'all' ({CONTROL} (the control), {', '.join(corpus.FAMILIES)})")
+    ap.add_argument("--realdata", default="all",
+                    help=f"comma list, 'all' or 'none' ({', '.join(corpus.REALDATA_SETS)}; skipped where absent)")
+    ap.add_argument("--seeds", help="comma list of seeds (quick: 0; full: 0,1,2)")
+    ap.add_argument("--pieces", help="piece counts of the multi-piece objects, comma list; 0 for none "
+                                     "(quick: 5; full: 5,8)")
+    ap.add_argument("--faces", type=int, help="faces a piece of two-piece objects (quick 1500, full 4000)")
+    ap.add_argument("--multi-faces", type=int, help="faces a piece of multi-piece objects (quick 800, full 2000)")
+    ap.add_argument("--backend", default="numpy", help="numpy, warp-cpu, ... (default numpy)")
+    ap.add_argument("--workers", type=int, default=1, help="assemble's local workers (default 1)")
+    ap.add_argument("--quick", action="store_true", help="one seed, small pieces, no realdata assembly")
+    ap.add_argument("--realdata-assemble", action=argparse.BooleanOptionalAction, default=None,
+                    help="assemble the 20-piece realdata sets (default: not in --quick)")
+    ap.add_argument("--dry", action="store_true", help="build the cases and report their labels only")
+    ap.add_argument("--json", help="write the rows and every case here")
+    args = ap.parse_args(argv)
+    out = run(args)
+    print(format_table(out["rows"]))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(out, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
