@@ -18,17 +18,22 @@ from .verify import SurfaceSample
 # fewer than the oriented normals use (CLOUD_NORMAL_NEIGHBOURS), so that a fit does not smooth a
 # rough break into a plane (orientation does not matter to roughness).
 ROUGHNESS_NEIGHBOURS = 6
+# A second, strict pick of the fracture (the split this many robust spreads above the median
+# roughness, not ROUGH_SPREADS) is tried when the first finds no fit: a thin wall's narrow break
+# drowns in the skin points the first pick holds.
+STRICT_SPREADS = 2.0
 
 
-def cloud_likelihood(points: np.ndarray, given_normals: np.ndarray | None) -> np.ndarray:
+def cloud_likelihood(points: np.ndarray, given_normals: np.ndarray | None, spreads: float | None = None) -> np.ndarray:
     """(N,) fracture likelihood of a cloud's (N, 3) points, from the scan's own (N, 3) normals
-    where it has them, else from the normals of small local plane fits."""
+    where it has them, else from the normals of small local plane fits (spreads: as for
+    `pointcloud.fracture_likelihood`)."""
     rough_normals = given_normals if given_normals is not None else local_pca(points, ROUGHNESS_NEIGHBOURS)[1][:, :, 0]
-    return fracture_likelihood(points, rough_normals)
+    return fracture_likelihood(points, rough_normals, spreads=spreads)
 
 
 def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
-                 scale: float) -> SurfaceSample:
+                 scale: float, spreads: float | None = None) -> SurfaceSample:
     """The sample a cloud is matched on.
 
     Parameters
@@ -37,6 +42,7 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
     given_normals : (N, 3) outward unit normals of the scan, or None (estimated and oriented)
     params : Params (icp_points, ppf_normal_radius)
     scale : the length relative parameters are fractions of
+    spreads : how strictly fracture is picked (`pointcloud.fracture_likelihood`; None: its default)
 
     Returns
     -------
@@ -45,7 +51,7 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
     """
     points = np.asarray(points, np.float64)
     normals = estimate_normals(points, given_normals)
-    fracture = np.flatnonzero(cloud_likelihood(points, given_normals) >= 0.5)
+    fracture = np.flatnonzero(cloud_likelihood(points, given_normals, spreads) >= 0.5)
     fracture = fracture[even_subsample(points[fracture], params.icp_points)]
     surf = even_subsample(points, 2 * params.icp_points)
     plane_normals = smoothed_normals(points[fracture], normals[fracture], params.ppf_normal_radius * scale)

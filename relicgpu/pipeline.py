@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -18,7 +18,7 @@ from .backends import resolve
 from .icp import same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
 from .io import Fragment
 from .params import Params
-from .cloudmatch import cloud_params, cloud_sample, is_cloud
+from .cloudmatch import STRICT_SPREADS, cloud_params, cloud_sample, is_cloud
 from .pointcloud import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals, vote_poses
 from .segment import segment
@@ -44,6 +44,7 @@ class Prepared:
     sample: SurfaceSample
     patches: list = field(default_factory=list)  # fracture patches, largest first
     timings: dict = field(default_factory=dict)
+    strict_sample: SurfaceSample | None = None  # clouds: the fracture picked strictly (cloudmatch.STRICT_SPREADS)
 
     @property
     def fracture_faces(self) -> np.ndarray:
@@ -132,10 +133,12 @@ def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
     sampled by `cloudmatch.cloud_sample`; no contours or patches (no surface to cut), so
     matching runs on point-pair votes and ICP alone."""
     t0 = time.perf_counter()
-    sample = cloud_sample(fragment.vertices, getattr(fragment, "normals", None), params, scale)
+    given = getattr(fragment, "normals", None)
+    sample = cloud_sample(fragment.vertices, given, params, scale)
+    strict = cloud_sample(fragment.vertices, given, params, scale, STRICT_SPREADS)
     no_faces = np.zeros(0, np.int64)
     return Prepared(fragment, scale, no_faces, np.zeros(0, bool), [], sample, [],
-                    {"cloud": time.perf_counter() - t0})
+                    {"cloud": time.perf_counter() - t0}, strict)
 
 
 @dataclass(frozen=True)
@@ -246,7 +249,26 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     pb = _as_prepared(b, params, be, scale)
     params = cloud_params(params, (pa.fragment, pb.fragment), scale)
     timings = {"prepare": time.perf_counter() - t_start}
+    result = _match_prepared(pa, pb, params, be, heads, scale, timings)
+    if result.accepted or heads is not None or pa.strict_sample is None or pb.strict_sample is None:
+        return result
+    # sparse clouds: fracture picked strictly (fewer skin points) can find a contact the wider
+    # pick's votes missed (a thin wall's narrow break); the fit must still pass on the wider pick
+    strict = _match_prepared(replace(pa, sample=pa.strict_sample), replace(pb, sample=pb.strict_sample), params, be,
+                             None, scale, dict(timings))
+    if not strict.accepted:
+        return result
+    ver = verify(pa.sample, pb.sample, strict.transform, be, params.contact_distance * scale,
+                 params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
+                 params.max_penetration, mutual=True)
+    score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
+    return replace(strict, accepted=ver.accepted, score=score, rmse=ver.rmse, overlap=ver.overlap,
+                   penetration=ver.penetration, reason=ver.reason if ver.accepted else result.reason)
 
+
+def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict) -> PairMatch:
+    """match_pair on prepared fragments: coarse poses, ICP, verification (timings: added to)."""
+    t_start = time.perf_counter() - timings["prepare"]
     t0 = time.perf_counter()
     if heads is not None:
         ca, ia, cb, ib = (int(h) for h in heads)

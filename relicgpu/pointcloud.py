@@ -235,7 +235,8 @@ def estimate_normals(points: np.ndarray, given: np.ndarray | None = None, k: int
     return orient_normals(points, local_pca(points, k)[1][:, :, 0], k)
 
 
-def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_NORMAL_NEIGHBOURS) -> np.ndarray:
+def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_NORMAL_NEIGHBOURS,
+                        spreads: float | None = None) -> np.ndarray:
     """Likelihood that each point lies on fracture surface, from the roughness of its normals.
 
     Roughness is a low quantile (ROUGH_QUANTILE) of the angles between a point's normal and
@@ -255,6 +256,7 @@ def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_
     points : (N, 3) array
     normals : (N, 3) unit normals (orientation is not used)
     k : neighbours per point
+    spreads : the split's distance above the median in robust spreads (None: ROUGH_SPREADS)
 
     Returns
     -------
@@ -276,7 +278,8 @@ def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_
     # the smooth surface is most of a piece: the split lies above the bulk's own spread
     centre = np.median(x)
     noise = 1.4826 * np.median(np.abs(x - centre)) or 1.0
-    split = max(otsu_split(x, np.ones(len(x))), centre + ROUGH_SPREADS * noise)
+    spreads = ROUGH_SPREADS if spreads is None else spreads
+    split = max(otsu_split(x, np.ones(len(x))), centre + spreads * noise)
     return 1.0 / (1.0 + np.exp(-(x - split) / noise))
 
 

@@ -136,9 +136,10 @@ def test_estimated_normals_face_outward_and_fracture_points_rank_rough():
         assert auc > 0.85
 
 
-# the cases that hold today (5/10 with normals, 4/10 without on vase/torso/slab seeds 0-3: see the report)
-@pytest.mark.parametrize("shape,seed,with_normals", [("torso", 0, True), ("torso", 0, False), ("torso", 1, True),
-                                                     ("torso", 1, False), ("slab", 1, True)])
+# a thin-walled vase (narrow break), a torso and a slab, with and without normals
+@pytest.mark.parametrize("shape,seed,with_normals", [("vase", 0, True), ("vase", 0, False), ("torso", 0, True),
+                                                     ("torso", 0, False), ("torso", 1, True), ("torso", 1, False),
+                                                     ("slab", 1, True)])
 def test_sparse_clouds_are_matched_on_their_points(shape, seed, with_normals):
     (a, b), _, truth = _cloud_pair(shape, seed, with_normals)
     _assert_right(match_pair(a, b, backend="numpy"), b, truth)
