@@ -37,6 +37,7 @@ from relicgpu.params import Params
 
 QUICK = {"seeds": "0", "faces": 3000, "multi_faces": 1500, "pieces": "5", "realdata_assemble": False}
 FULL = {"seeds": "0,1,2", "faces": 6000, "multi_faces": 3000, "pieces": "5,8", "realdata_assemble": True}
+CLOUD_PAIRS = ("breakingbad_drinkbottle_pointclouds",)  # realdata pairs of point clouds (known answer)
 CONTROL = "synth"  # a control row: relicgpu.synth's own breaks (vase, torso, slab by seed; noise 0.0005)
 
 
@@ -82,6 +83,23 @@ def pair_case(result, params: Params, backend) -> dict:
             "right": bool(m.accepted and rot < 2.0 and rms < 0.01)}
 
 
+def cloud_pair_case(name: str, params: Params, backend) -> dict:
+    """The Breaking Bad bottle (two point clouds): the inverse of solution.json's T carries obj2 onto obj1."""
+    from relicgpu.io import load_fragment
+    from relicgpu.pipeline import match_pair
+
+    folder = corpus.REALDATA / name
+    a, b = load_fragment(folder / "obj1_challenge.ply"), load_fragment(folder / "obj2_challenge.ply")
+    true = invert(np.asarray(json.loads((folder / "solution.json").read_text())["T"], np.float64))
+    both = np.vstack([a.vertices, b.vertices @ true[:3, :3].T + true[:3, 3]])
+    size = float(np.ptp(both, axis=0).max())
+    m = match_pair(a, b, params, backend)
+    rot = rotation_error_deg(m.transform, true)
+    rms = relative_pose_error(b.vertices, m.transform, np.eye(4), true) / size
+    return {"accepted": bool(m.accepted), "rotation_error_deg": rot, "rms": rms, "reason": m.reason,
+            "right": bool(m.accepted and rot < 2.0 and rms < 0.01), "points": [len(a.vertices), len(b.vertices)]}
+
+
 def assembly_case(result, params: Params, backend, workers: int) -> dict:
     from relicgpu.assembly import assemble
 
@@ -108,7 +126,7 @@ def run(args) -> dict:
     pieces = [int(p) for p in (args.pieces or preset["pieces"]).split(",") if int(p) > 1]
     families = ((CONTROL,) + corpus.FAMILIES if args.families == "all" else
                 [f for f in args.families.split(",") if f])
-    realdata = (list(corpus.REALDATA_SETS) if args.realdata == "all" else
+    realdata = (list(corpus.REALDATA_SETS) + list(CLOUD_PAIRS) if args.realdata == "all" else
                 [] if args.realdata == "none" else args.realdata.split(","))
     faces = args.faces or preset["faces"]
     multi_faces = args.multi_faces or preset["multi_faces"]
@@ -121,6 +139,16 @@ def run(args) -> dict:
     for k, (fam, seed, n) in enumerate(plan, 1):
         t0 = time.perf_counter()
         case = {"family": fam, "seed": seed, "pieces": n}
+        if fam in CLOUD_PAIRS:  # point clouds: no faces to label, one pair with a known answer
+            if not (corpus.REALDATA / fam).is_dir() or args.dry:
+                continue
+            p = case["pair"] = cloud_pair_case(fam, params, backend)
+            case.update(pieces=2, faces_per_piece=0.0, true_share=float("nan"), time_s=time.perf_counter() - t0)
+            print(f"[{k}/{len(plan)}] {fam}: {p['points']} points, pair {'accepted' if p['accepted'] else 'rejected'} "
+                  f"rot {p['rotation_error_deg']:.1f} deg rms {p['rms']:.3f} -> {'right' if p['right'] else 'wrong'} "
+                  f"({case['time_s']:.1f} s)", file=sys.stderr, flush=True)
+            cases.append(case)
+            continue
         try:
             result = make_case(fam, n, seed, faces if n == 2 else multi_faces)
         except FileNotFoundError as exc:
@@ -163,8 +191,9 @@ def table_rows(cases: list) -> list[dict]:
         asm = [c["assembly"] for c in cs if "assembly" in c]
         tp, pred, true = (sum(s[k] for s in seg) for k in ("tp", "pred", "true"))
         rows.append({
-            "family": fam, "objects": len(cs), "faces_per_piece": float(np.mean([c["faces_per_piece"] for c in cs])),
-            "true_share": float(np.mean([c["true_share"] for c in cs])),
+            "family": fam, "objects": len(cs),
+            "faces_per_piece": float(np.mean([c["faces_per_piece"] for c in cs])) if seg or args_dry(cs) else None,
+            "true_share": float(np.mean([c["true_share"] for c in cs])) if seg or args_dry(cs) else None,
             "seg_recall": tp / true if seg and true else None, "seg_precision": tp / pred if seg and pred else None,
             "pairs_right": sum(p["right"] for p in pairs), "pairs": len(pairs),
             "rotation_error_deg": float(np.median([p["rotation_error_deg"] for p in pairs])) if pairs else None,
@@ -174,13 +203,18 @@ def table_rows(cases: list) -> list[dict]:
     return rows
 
 
+def args_dry(cases: list) -> bool:
+    """Cases built without the pipeline (--dry) still report their sizes."""
+    return all("seg" not in c and "pair" not in c for c in cases)
+
+
 def format_table(rows: list[dict]) -> str:
     f = lambda x, spec=".2f": "-" if x is None else format(x, spec)  # noqa: E731
     head = "| family | objects | faces/piece | true fracture | seg R | seg P | pairs right | rot err deg | part acc | touch R | time s |"
     lines = [head, "|" + "---|" * 11]
     for r in rows:
         pairs = f"{r['pairs_right']}/{r['pairs']}" if r["pairs"] else "-"
-        lines.append(f"| {r['family']} | {r['objects']} | {r['faces_per_piece']:.0f} | {r['true_share']:.2f} | "
+        lines.append(f"| {r['family']} | {r['objects']} | {f(r['faces_per_piece'], '.0f')} | {f(r['true_share'])} | "
                      f"{f(r['seg_recall'])} | {f(r['seg_precision'])} | {pairs} | {f(r['rotation_error_deg'], '.1f')} | "
                      f"{f(r['part_accuracy'])} | {f(r['touching_recall'])} | {r['time_s']:.0f} |")
     return "\n".join(lines)
@@ -191,7 +225,8 @@ def main(argv=None) -> int:
     ap.add_argument("--families", default="all",
                     help=f"comma list or 'all' ({CONTROL} (the control), {', '.join(corpus.FAMILIES)})")
     ap.add_argument("--realdata", default="all",
-                    help=f"comma list, 'all' or 'none' ({', '.join(corpus.REALDATA_SETS)}; skipped where absent)")
+                    help=f"comma list, 'all' or 'none' ({', '.join(corpus.REALDATA_SETS + CLOUD_PAIRS)}; "
+                         "skipped where absent)")
     ap.add_argument("--seeds", help="comma list of seeds (quick: 0; full: 0,1,2)")
     ap.add_argument("--pieces", help="piece counts of the multi-piece objects, comma list; 0 for none "
                                      "(quick: 5; full: 5,8)")
