@@ -177,6 +177,8 @@ def test_pocl_16_wide_masks_are_refused_where_wrong_and_8_wide_chosen(tmp_path):
     assert run.returncode == 0, run.stderr
     import json
     out = json.loads(run.stdout.strip().splitlines()[-1])
+    if out["cpu"] is None:
+        pytest.skip("this PoCL is not the wheel's (a system one): its CPU target cannot be set here")
     assert out["cpu"] == "haswell" and "haswell" in out["device"]
     if out["forced"] is None:
         pytest.skip("this PoCL compiles 16-wide masks right for haswell: no fault to refuse")

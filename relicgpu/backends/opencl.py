@@ -21,6 +21,7 @@ import mmap
 import os
 import platform as _platform
 import struct
+import sys
 import threading
 from pathlib import Path
 
@@ -81,12 +82,13 @@ def _repair_pocl_cpu_name() -> str | None:
         return None
     libdir = Path(list(spec.submodule_search_locations)[0]) / ".libs"
     candidates = sorted(libdir.glob("libpocl*.so*")) if libdir.is_dir() else []
-    if not candidates:
-        return None
     try:
         lib = ctypes.CDLL(str(candidates[0]), mode=ctypes.RTLD_GLOBAL)
         func = lib.pocl_get_llvm_cpu_name
-    except (OSError, AttributeError):
+    except (IndexError, OSError, AttributeError):
+        if wanted:
+            print(f"relicgpu: warning: RELICGPU_POCL_CPU={wanted} ignored: pyopencl here does not carry the "
+                  "PoCL of pocl-binary-distribution", file=sys.stderr)
         return None
     func.restype = ctypes.c_void_p
     libc = ctypes.CDLL(None)
