@@ -65,6 +65,11 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
 # the verification's contact distance and residual limit are at least these many spacings.
 CONTACT_SPACINGS = 1.0
 RESIDUAL_SPACINGS = 0.4
+# Where two clouds' surfaces touch after a fit, at least this share of the touching points must
+# face each other (`verify.facing_share`, normals oriented by visibility). Measured on 24
+# synthetic pairs without normals and 24 with: right fits 0.51-0.92, gross wrong fits (60-160
+# degrees off) that pass overlap and residual 0.17-0.44.
+MIN_FACING = 0.475
 
 
 def point_spacing(points: np.ndarray) -> float:

@@ -18,7 +18,7 @@ from .backends import resolve
 from .icp import same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
 from .io import Fragment
 from .params import Params
-from .cloudmatch import STRICT_SPREADS, cloud_params, cloud_sample, is_cloud
+from .cloudmatch import MIN_FACING, STRICT_SPREADS, cloud_params, cloud_sample, is_cloud
 from .pointcloud import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals, vote_poses
 from .segment import segment
@@ -260,7 +260,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
         return result
     ver = verify(pa.sample, pb.sample, strict.transform, be, params.contact_distance * scale,
                  params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
-                 params.max_penetration, mutual=True)
+                 params.max_penetration, mutual=True, min_facing=MIN_FACING)
     score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return replace(strict, accepted=ver.accepted, score=score, rmse=ver.rmse, overlap=ver.overlap,
                    penetration=ver.penetration, reason=ver.reason if ver.accepted else result.reason)
@@ -346,11 +346,12 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
                                          index_of(pa.sample.fracture))
         fits = [(polished[i], *candidates[k][2:]) for i, k in enumerate(best_first)]
     # verify the best-touching fits first; stop at the first accepted
+    clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
     best = None
     for transform, ca, cb, pairs in fits:
         ver = verify(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
                      params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
-                     params.max_penetration, index_of, mutual=is_cloud(pa.fragment) or is_cloud(pb.fragment))
+                     params.max_penetration, index_of, mutual=clouds, min_facing=MIN_FACING if clouds else 0.0)
         rank = (ver.accepted, ver.overlap - ver.penetration)
         if best is None or rank > best[0]:
             best = (rank, transform, ver, ca, cb, pairs)

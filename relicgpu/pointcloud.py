@@ -127,6 +127,13 @@ CLOUD_NORMAL_NEIGHBOURS = 12
 ROUGH_QUANTILE = 0.35
 ROUGH_PARALLEL_POWER = 4
 ROUGH_SPREADS = 1.0
+# Outward orientation (`orient_normals`): viewpoints on a sphere VIEW_DISTANCE cloud radii from
+# its centre, hidden-point removal with flip radius 10 ** HPR_EXPONENT times the farthest point
+# (larger sees more, through sparse walls too), then VOTE_ROUNDS of averaging along the surface.
+VIEW_DIRECTIONS = 48
+VIEW_DISTANCE = 3.0
+HPR_EXPONENT = 1.5
+VOTE_ROUNDS = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,55 +183,77 @@ def local_pca(points: np.ndarray, k: int = CLOUD_NEIGHBOURS) -> tuple[np.ndarray
 
 
 def orient_normals(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_NORMAL_NEIGHBOURS) -> np.ndarray:
-    """Unoriented (N,3) normals made consistent, then outward.
+    """Unoriented (N,3) normals turned outward, by visibility from outside.
 
-    Flips propagate along a minimum spanning tree of the k-nearest-neighbour graph (Hoppe et
-    al. 1992), over links between near-parallel normals only (short, most parallel first):
-    across a crease the sign cannot be carried, and links that run along parallel normals
-    cross a thin wall. Each connected smooth part then faces the side where the cloud is
-    empty: the points within a tenth of the cloud's size lie mostly behind a solid's surface.
+    Each point votes for the side it is seen from (`visibility_votes`: hidden-point removal from
+    viewpoints around the cloud); the votes are then averaged a few rounds over links between
+    near-parallel neighbours that do not cross a thin wall (`_smooth_links`), each neighbour's
+    vote carried over with the sign that makes its normal agree with the point's. Points seen
+    from no viewpoint (deep in a concavity) take their neighbours' side. Orientation from
+    visibility needs no closed surface: it holds on open shells and on both faces of a thin
+    wall, where the side on which the cloud is empty does not tell outside from inside.
     """
+    i, j, agree = _smooth_links(points, normals, k)
+    vote = visibility_votes(points, normals)
+    scale = np.median(np.abs(vote[vote != 0])) if np.any(vote != 0) else 1.0
+    vote = np.clip(vote / scale, -1.0, 1.0)
+    n = len(points)
     from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+
+    links = coo_matrix((np.concatenate([agree, agree]), (np.concatenate([i, j]), np.concatenate([j, i]))),
+                       shape=(n, n)).tocsr()
+    degree = np.maximum(np.asarray(abs(links).sum(axis=1)).ravel(), 1.0)
+    for _ in range(VOTE_ROUNDS):
+        vote = 0.5 * vote + 0.5 * (links @ vote) / degree
+    return np.array(normals, np.float64) * np.where(vote < 0, -1.0, 1.0)[:, None]
+
+
+def _smooth_links(points: np.ndarray, normals: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Links (i, j) between k-nearest neighbours on one smooth sheet: near-parallel normals
+    (not across a crease) and a link running along the surface (not across a thin wall, whose
+    two faces have parallel normals too). Returns i, j and the sign (+1/-1) of n_i . n_j."""
     from scipy.spatial import cKDTree
 
     n = len(points)
-    out = np.array(normals, np.float64)
-    tree = cKDTree(points)
-    _, idx = tree.query(points, k=min(k + 1, n))
+    _, idx = cKDTree(points).query(points, k=min(k + 1, n))
     rows = np.repeat(np.arange(n), idx.shape[1] - 1)
     pairs = np.unique(np.sort(np.stack([rows, idx[:, 1:].ravel()], 1), axis=1), axis=0)
     i, j = pairs[:, 0], pairs[:, 1]
     d = points[j] - points[i]
     length = np.maximum(np.linalg.norm(d, axis=1), 1e-300)
-    parallel = np.abs(np.einsum("ij,ij->i", out[i], out[j]))
-    along = np.maximum(np.abs(np.einsum("ij,ij->i", d, out[i])), np.abs(np.einsum("ij,ij->i", d, out[j]))) / length
-    keep = (parallel > 0.7) & (along < 0.5)
-    w = (1.1 - parallel[keep]) * length[keep] / np.median(length)
-    mst = minimum_spanning_tree(coo_matrix((w, (i[keep], j[keep])), shape=(n, n)).tocsr())
-    n_parts, part = connected_components(mst, directed=False)
-    reach = 0.1 * float(np.linalg.norm(np.ptp(points, axis=0)))
-    for c in range(n_parts):
-        members = np.flatnonzero(part == c)
-        order, parent = breadth_first_order(mst, members[0], directed=False)
-        for a in order[1:]:  # in BFS order: a parent is final before its children
-            if out[a] @ out[parent[a]] < 0:
-                out[a] = -out[a]
-        if _faces_the_cloud(points, out, members[:: max(1, len(members) // 200)], tree, reach):
-            out[members] = -out[members]
-    return out
+    dot = np.einsum("ij,ij->i", normals[i], normals[j])
+    along = np.maximum(np.abs(np.einsum("ij,ij->i", d, normals[i])), np.abs(np.einsum("ij,ij->i", d, normals[j]))) / length
+    keep = (np.abs(dot) > 0.7) & (along < 0.5)
+    return i[keep], j[keep], np.sign(dot[keep])
 
 
-def _faces_the_cloud(points: np.ndarray, normals: np.ndarray, which: np.ndarray, tree, reach: float) -> bool:
-    """True when more of the cloud within `reach` of the points `which` lies in front of them
-    (clearly off their tangent planes, on the side their normals point to) than behind."""
-    front = back = 0
-    for a, near in zip(which, tree.query_ball_point(points[which], reach)):
-        d = points[near] - points[a]
-        side = d @ normals[a] / np.maximum(np.linalg.norm(d, axis=1), 1e-300)
-        front += int(np.sum(side > 0.3))
-        back += int(np.sum(side < -0.3))
-    return front > back
+def view_directions(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
+    t = np.arange(n) + 0.5
+    polar, turn = np.arccos(1.0 - 2.0 * t / n), np.pi * (1.0 + 5 ** 0.5) * t
+    return np.stack([np.cos(turn) * np.sin(polar), np.sin(turn) * np.sin(polar), np.cos(polar)], 1)
+
+
+def visibility_votes(points: np.ndarray, normals: np.ndarray, views: int = VIEW_DIRECTIONS,
+                     exponent: float = HPR_EXPONENT) -> np.ndarray:
+    """(N,) sum over viewpoints around the cloud of cos(normal, direction to the viewpoint), over
+    the viewpoints that see the point (Katz et al. 2007 hidden-point removal: a point is seen
+    when its spherical flip about the viewpoint lies on the convex hull; `exponent` sets the
+    flip radius, 10 ** exponent times the farthest point's distance). Positive: the normal
+    points outward."""
+    from scipy.spatial import ConvexHull
+
+    centre = points.mean(axis=0)
+    radius = float(np.linalg.norm(points - centre, axis=1).max()) or 1.0
+    vote = np.zeros(len(points))
+    for direction in view_directions(views):
+        rel = points - (centre + VIEW_DISTANCE * radius * direction)
+        dist = np.maximum(np.linalg.norm(rel, axis=1), 1e-300)
+        flip = rel * (2.0 * dist.max() * 10.0 ** exponent / dist - 1.0)[:, None]
+        hull = ConvexHull(np.vstack([flip, np.zeros(3)]))
+        seen = hull.vertices[hull.vertices < len(points)]
+        vote[seen] -= np.einsum("ij,ij->i", normals[seen], rel[seen]) / dist[seen]
+    return vote
 
 
 def estimate_normals(points: np.ndarray, given: np.ndarray | None = None, k: int = CLOUD_NORMAL_NEIGHBOURS,

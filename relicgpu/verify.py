@@ -21,6 +21,7 @@ class Verification:
     penetration: float  # share of surface samples deeper than the tolerance inside the other fragment
     accepted: bool
     reason: str
+    facing: float = 1.0  # share of the surfaces' contact points whose outward normals face each other
 
 
 @dataclass(frozen=True)
@@ -45,7 +46,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.nda
 
 def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, contact: float,
            max_rmse: float, min_overlap: float, depth: float, max_penetration: float,
-           index_of=None, mutual: bool = False) -> Verification:
+           index_of=None, mutual: bool = False, min_facing: float = 0.0) -> Verification:
     """Check b moved by `transform` against a (all lengths absolute).
 
     The overlap is the larger of the two fracture samples' shares in contact (a partial contact
@@ -55,7 +56,11 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
 
     index_of: optional function from one of the samples' point arrays to its nearest-neighbour
     index (kept by a caller that verifies several transforms of one pair); every query here
-    goes to a's or b's own, unmoved, points."""
+    goes to a's or b's own, unmoved, points.
+
+    min_facing: the least share of the surfaces' contact points whose outward normals face each
+    other (`facing_share`); touching pieces meet face to face, a wrong fit puts one piece's skin
+    along the other's from behind or side by side (0: not checked)."""
     if index_of is None:
         index_of = backend.nearest_index
     inv = np.linalg.inv(transform)
@@ -77,15 +82,18 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
     # a's surface in b's frame is the same check with b fixed
     pen_a = _inside_share(apply(inv, a.surface), b, depth, contact, index_of)
     penetration = float(max(pen_a, pen_b))
+    facing = facing_share(a, b, transform, contact, index_of) if min_facing > 0 else 1.0
 
     if overlap < min_overlap:
-        return Verification(overlap, rmse, penetration, False, f"overlap {overlap:.2f} below {min_overlap:.2f}")
+        return Verification(overlap, rmse, penetration, False, f"overlap {overlap:.2f} below {min_overlap:.2f}", facing)
     if rmse > max_rmse:
-        return Verification(overlap, rmse, penetration, False, f"residual {rmse:.4g} above {max_rmse:.4g}")
+        return Verification(overlap, rmse, penetration, False, f"residual {rmse:.4g} above {max_rmse:.4g}", facing)
     if penetration > max_penetration:
         return Verification(overlap, rmse, penetration, False,
-                            f"interpenetration {penetration:.3f} above {max_penetration:.3f}")
-    return Verification(overlap, rmse, penetration, True, "accepted")
+                            f"interpenetration {penetration:.3f} above {max_penetration:.3f}", facing)
+    if facing < min_facing:
+        return Verification(overlap, rmse, penetration, False, f"facing {facing:.2f} below {min_facing:.2f}", facing)
+    return Verification(overlap, rmse, penetration, True, "accepted", facing)
 
 
 def _inside_share(points: np.ndarray, other: SurfaceSample, depth: float, contact: float, index_of) -> float:
@@ -104,3 +112,15 @@ def _inside_share(points: np.ndarray, other: SurfaceSample, depth: float, contac
     # far from the other surface the nearest normal says nothing about inside or outside
     near = np.asarray(dist) < 8 * depth
     return float(np.sum((signed < -depth) & near)) / len(points)
+
+
+def facing_share(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, contact: float, index_of) -> float:
+    """Share of b's surface points (moved by `transform`) within `contact` of a's surface whose
+    outward normal is opposed to that of the nearest point of a (cosine below -0.5); 1 where
+    the surfaces do not touch (the overlap check speaks then)."""
+    idx, dist = index_of(a.surface).query(apply(transform, b.surface))
+    touching = np.asarray(dist) < contact
+    if not touching.any():
+        return 1.0
+    cos = np.einsum("ij,ij->i", (b.normals @ transform[:3, :3].T)[touching], a.normals[np.asarray(idx)[touching]])
+    return float(np.mean(cos < -0.5))
