@@ -26,6 +26,9 @@ def main(argv=None) -> int:
     ap.add_argument("--backend", default="numpy")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", default=None, help="write the results here")
+    ap.add_argument("--size-factor", type=float, default=1.0,
+                    help="scale the paper's vertex counts (e.g. 0.1 for a smoke run; figures need 1)")
+    ap.add_argument("--pairs", type=int, default=len(PAPER), help="only the first N pairs of the table")
     args = ap.parse_args(argv)
 
     from relicgpu import synth
@@ -37,8 +40,8 @@ def main(argv=None) -> int:
     backend = resolve(args.backend)
     params = Params()
     rows = []
-    for (va, vb, paper_ms), shape in zip(PAPER, SHAPES):
-        r = synth.generate(shape, pieces=2, seed=7, faces=va + vb, noise=0.0005)
+    for (va, vb, paper_ms), shape in list(zip(PAPER, SHAPES))[: args.pairs]:
+        r = synth.generate(shape, pieces=2, seed=7, faces=int((va + vb) * args.size_factor), noise=0.0005)
         a, b = r.fragments
         truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
         scale = pair_scale(a, b, params)
