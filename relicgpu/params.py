@@ -22,6 +22,24 @@ class Params:
     vote_rings: int = 2              # fracture/original by a vote of the faces this many edge-steps around
     min_region_faces: int = 12       # smaller regions are merged into their neighbour ...
     min_region_share: float = 0.01   # ... as are regions with less than this share of the faces
+    # "roughness": Otsu split of the roughness + vote (above); "regions": crease regions, skin grown
+    # from the largest over gentle boundaries, the rest by shape cues (segment_cues, issue 16 item 2)
+    segmentation: str = "roughness"
+    region_merge_deg: float = 35.0   # regions join the skin across boundaries turning less than this ...
+    region_merge_noise: float = 2.0  # ... plus this many times the skin's roughness (degrees) ...
+    region_rough_max: float = 3.0    # ... unless rougher than this many times the skin
+    region_noise_floor_deg: float = 0.5   # the skin's roughness taken at least this in such ratios
+    region_relay_share: float = 0.1  # only regions with this area share pass the growth on (or seed it)
+    region_sharp_rim: float = 0.95   # a seed with this share of its rim sharp (> 35 deg), grown over no large region ...
+    region_isolated_weight: float = 0.5  # ... competes with this share of its area (a cut looks like that)
+    region_curved_unflatness: float = -2.0  # outside regions curved beyond this (log(1 - flatness)) ...
+    region_curved_rough: float = 0.6  # ... and not rougher (log ratio to the skin) than this are skin
+    region_context_rough: float = 0.6  # when regions rougher than this (log ratio) ...
+    region_context_share: float = 0.05  # ... cover this share of the non-skin area, the break is rough:
+    region_context_smooth: float = 0.2  # ... regions smoother than this (log ratio) are skin then
+    region_thin_wall: float = 0.04   # skin facing itself across less than this (of the size) is a thin wall ...
+    region_band_walls: float = 2.5   # ... whose fracture is a band: smooth regions wider than this many walls are skin
+    region_softness: float = 0.15    # log-unit width of the logistic steps grading the likelihood
 
     # contours
     contour_step: float = 0.008      # resampling step along contours

@@ -56,7 +56,8 @@ class Segmentation:
     region_is_fracture: np.ndarray  # (R,) bool
     face_facet: np.ndarray  # (F,) int region id before neighbouring fracture regions are joined
     face_roughness: np.ndarray  # (F,) degrees, normal perturbation
-    face_fracture_prob: np.ndarray  # (F,) in [0, 1]: area share of its facet's faces voted fracture (> 0.5: fracture)
+    face_fracture_prob: np.ndarray  # (F,) in [0, 1], > 0.5 exactly on fracture faces: its facet's share of faces
+    # voted fracture (segmentation "roughness"), or the facet's cue likelihood ("regions", segment_cues)
     edge_angle: np.ndarray  # (E,) degrees, normal angle of each interior edge
     normals: np.ndarray  # (F,3)
     areas: np.ndarray  # (F,)
@@ -131,26 +132,40 @@ def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: floa
 
     smooth_edges = topo.edge_faces[angle < params.crease_angle_deg]
     rough = face_roughness(normals, areas, smooth_edges, params.roughness_rings)
-    is_fracture = rough > roughness_threshold(rough, areas, params)
-    # a vote of the faces around: single rough faces on a smooth surface (and the reverse) flip
-    is_fracture = ring_average(is_fracture.astype(np.float64), areas, smooth_edges, params.vote_rings) > 0.5
+    if params.segmentation == "regions":
+        from .segment_cues import cue_labels  # segment_cues builds on this module
+        region, region_prob = cue_labels(v, f, normals, areas, topo, angle, params)
+    elif params.segmentation == "roughness":
+        region, region_prob = _roughness_labels(rough, areas, topo, angle, params)
+    else:
+        raise ValueError(f"unknown segmentation {params.segmentation!r}")
+    region_is_fracture = region_prob > 0.5
     e0, e1 = topo.edge_faces[:, 0], topo.edge_faces[:, 1]
-    joins = (is_fracture[e0] == is_fracture[e1]) & (angle < params.crease_angle_deg)
-    region = _components(len(f), topo.edge_faces[joins])
-    region = _merge_small(region, topo.edge_faces, max(params.min_region_faces, int(params.min_region_share * len(f))))
-    # A region's class is the area-weighted majority of its faces.
-    n_regions = int(region.max()) + 1
-    frac_area = np.bincount(region, weights=areas * is_fracture, minlength=n_regions)
-    all_area = np.bincount(region, weights=areas, minlength=n_regions)
-    region_share = frac_area / np.where(all_area > 0, all_area, 1)
-    region_is_fracture = region_share > 0.5
     # Neighbouring fracture regions form one fracture patch (one set of contours).
     fracture = region_is_fracture[region]
     same = (region[e0] == region[e1]) | (fracture[e0] & fracture[e1])
     patch = _components(len(f), topo.edge_faces[same])
     patch_is_fracture = np.zeros(int(patch.max()) + 1, bool)
     patch_is_fracture[patch[fracture]] = True
-    return Segmentation(patch, patch_is_fracture, region, rough, region_share[region], angle, normals, areas, topo)
+    return Segmentation(patch, patch_is_fracture, region, rough, region_prob[region], angle, normals, areas, topo)
+
+
+def _roughness_labels(rough, areas, topo, angle, params):
+    """Regions and their fracture likelihood from the roughness: Otsu's split, a vote of the faces
+    around, regions grown over same-class edges below the crease angle, small ones merged; a
+    region's likelihood is the area share of its faces voted fracture. Returns (F,) region, (R,) share."""
+    smooth_edges = topo.edge_faces[angle < params.crease_angle_deg]
+    is_fracture = rough > roughness_threshold(rough, areas, params)
+    # a vote of the faces around: single rough faces on a smooth surface (and the reverse) flip
+    is_fracture = ring_average(is_fracture.astype(np.float64), areas, smooth_edges, params.vote_rings) > 0.5
+    e0, e1 = topo.edge_faces[:, 0], topo.edge_faces[:, 1]
+    joins = (is_fracture[e0] == is_fracture[e1]) & (angle < params.crease_angle_deg)
+    region = _components(len(areas), topo.edge_faces[joins])
+    region = _merge_small(region, topo.edge_faces, max(params.min_region_faces, int(params.min_region_share * len(areas))))
+    n_regions = int(region.max()) + 1
+    frac_area = np.bincount(region, weights=areas * is_fracture, minlength=n_regions)
+    all_area = np.bincount(region, weights=areas, minlength=n_regions)
+    return region, frac_area / np.where(all_area > 0, all_area, 1)
 
 
 def _components(n: int, edges: np.ndarray) -> np.ndarray:

@@ -1,8 +1,25 @@
-"""Cues for fracture segmentation beyond roughness (issue 16, item 2; groundwork, not yet used by `segment`).
+"""Fracture segmentation from region cues (issue 16, item 2): `segment` with `Params.segmentation
+== "regions"` (`cue_labels`); the default is still the roughness vote, which is better on synth.
 
 A fracture face is one that is not part of the original skin. Roughness alone fails on smooth or
-flat breaks and on bumpy scanned skins, so these are the region-level cues the next segmentation
-is to combine:
+flat breaks and on bumpy scanned skins, so the skin is found from the shape of the regions between
+creases:
+
+1. `crease_regions` splits the mesh at creases; `region_cues` describes each region.
+2. `boundary_turn`: the turn across each region boundary between normals averaged a few rings into
+   each side. `skin_from_seeds` grows the skin from the largest regions over boundaries gentler
+   than `region_merge_deg` + `region_merge_noise` x the seed's roughness (the mesh's own noise),
+   keeping the seed that grows most, a lone sharp-rimmed seed (a cut) discounted.
+3. `region_fracture_prob`: regions outside the grown skin are fracture (bounded by creases too
+   sharp to grow over), unless curved and as smooth as the skin (a vessel's inner face), or as
+   smooth as the skin where the break is evidently rough (a slab's other sides), or, on a thin
+   wall (`wall_thickness`), smooth and wider than a few walls (a vessel's bottom). Logistic steps
+   make it a graded likelihood, > 0.5 exactly on the fracture.
+
+Measured (scripts/bench_segment.py; thresholds fitted with corpus smooth-noisy, vessel-coarse and
+the Blender cylinder held out) in the commit message that introduced the "regions" method.
+
+The pieces:
 
 crease partition (`crease_regions`)
     regions bounded by creases. A crease is an edge whose normal angle is sharp (> `crease_deg`),
@@ -26,7 +43,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
+from .params import Params
 from .segment import Topology, _components, _merge_small, ring_average
 
 CUE_NAMES = ("log_share", "largest", "log_rough_ratio", "log_width_edges", "log_width_size", "log_unflatness",
@@ -84,6 +103,11 @@ class RegionCues:
     """Scale-free cues per region (rows follow region ids); `values[:, k]` is `CUE_NAMES[k]`."""
     values: np.ndarray  # (R, len(CUE_NAMES)) float
     area: np.ndarray  # (R,) region areas
+    roughness_deg: np.ndarray  # (R,) area-weighted mean angle between a face's normal and its 1-ring's
+
+    def rough_ratio(self, ref: int, floor_deg: float) -> np.ndarray:
+        """(R,) roughness relative to region `ref`'s (the noise floor), that taken at least `floor_deg`."""
+        return (self.roughness_deg + 0.01) / max(float(self.roughness_deg[ref]), floor_deg)
 
 
 def region_cues(vertices: np.ndarray, normals: np.ndarray, areas: np.ndarray, topo: Topology,
@@ -128,7 +152,7 @@ def region_cues(vertices: np.ndarray, normals: np.ndarray, areas: np.ndarray, to
         np.log(width / h + 1e-3), np.log(width / max(size, 1e-12) + 1e-6),
         np.log(1 - np.minimum(flatness, 1) + 1e-4),
         rim_sharp / np.maximum(rim_len, 1e-12), rim_angle / np.maximum(rim_len, 1e-12)], 1)
-    return RegionCues(values, area)
+    return RegionCues(values, area, rough)
 
 
 def _region_roughness(normals, areas, inside_edges, region, region_area) -> np.ndarray:
@@ -147,3 +171,230 @@ def _rim_sums(ra, rb, length, angle, crease_deg, n_reg):
     def total(w):
         return np.bincount(both, weights=np.concatenate([w, w]), minlength=n_reg)
     return total(length), total(length * (angle > crease_deg)), total(length * angle)
+
+
+def boundary_turn(normals: np.ndarray, areas: np.ndarray, topo: Topology, region: np.ndarray,
+                  rings: int = 3) -> np.ndarray:
+    """Turn (degrees) across each interior edge between normals averaged within each side's own region.
+
+    The average spans `rings` edge steps, a band a few edge lengths wide: a crease rounded by a
+    rescan turns by its full angle across it, a crease-detector split of a smooth skin only by the
+    skin's curvature and noise at that width.
+
+    Parameters
+    ----------
+    normals : (F, 3) unit face normals
+    areas : (F,) face areas
+    topo : the mesh's `Topology`
+    region : (F,) int region id per face
+    rings : edge steps averaged over on each side
+
+    Returns
+    -------
+    (E,) degrees; 0 inside a region
+    """
+    e0, e1 = topo.edge_faces[:, 0], topo.edge_faces[:, 1]
+    side = ring_average(normals, areas, topo.edge_faces[region[e0] == region[e1]], rings)
+    side /= np.maximum(np.linalg.norm(side, axis=1), 1e-12)[:, None]
+    turn = np.degrees(np.arccos(np.clip(np.einsum("ed,ed->e", side[e0], side[e1]), -1, 1)))
+    return np.where(region[e0] == region[e1], 0.0, turn)
+
+
+def _pair_medians(region, topo, values):
+    """(P, 2) neighbouring region pairs (low id first) and the (P,) median of `values` over their shared edges."""
+    ra, rb = region[topo.edge_faces[:, 0]], region[topo.edge_faces[:, 1]]
+    cross = ra != rb
+    lo, hi, val = np.minimum(ra, rb)[cross], np.maximum(ra, rb)[cross], values[cross]
+    order = np.lexsort((val, hi, lo))
+    lo, hi, val = lo[order], hi[order], val[order]
+    start = np.flatnonzero(np.concatenate([[True], (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])]))
+    count = np.diff(np.concatenate([start, [len(lo)]]))
+    median = 0.5 * (val[start + (count - 1) // 2] + val[start + count // 2])
+    return np.stack([lo[start], hi[start]], 1), median
+
+
+def grow_skin(region: np.ndarray, topo: Topology, turn: np.ndarray, seed: int, rough_ratio: np.ndarray,
+              merge_deg: float, rough_max: float, relay: np.ndarray | None = None) -> np.ndarray:
+    """The skin: the largest region, grown over neighbours that meet it gently and are no rougher.
+
+    Grown from the skin outwards (never fracture to fracture first), and only through `relay`
+    regions (large ones): a sliver on a rounded crease turns by half the crease to either side and
+    would otherwise chain the fracture beyond it into the skin.
+
+    Parameters
+    ----------
+    region : (F,) int region id per face, 0..R-1
+    topo : the mesh's `Topology`
+    turn : (E,) degrees, `boundary_turn`
+    seed : the region grown from (the largest)
+    rough_ratio : (R,) roughness relative to the seed's
+    merge_deg : a neighbour joins when their shared boundary turns by less (median)
+    rough_max : ... and its roughness ratio is below this
+    relay : (R,) bool, regions that pass the growth on (default all)
+
+    Returns
+    -------
+    (R,) bool, regions of the skin
+    """
+    pair, median = _pair_medians(region, topo, turn)
+    skin = np.zeros(int(region.max()) + 1, bool)
+    skin[seed] = True
+    relay = np.ones(len(skin), bool) if relay is None else relay.copy()
+    relay[seed] = True
+    gentle = pair[(median < merge_deg) & (rough_ratio[pair].max(1) < rough_max)]
+    for _ in range(len(skin)):
+        front = skin & relay
+        grow = np.concatenate([gentle[front[gentle[:, 0]] & ~skin[gentle[:, 1]], 1],
+                               gentle[front[gentle[:, 1]] & ~skin[gentle[:, 0]], 0]])
+        if not len(grow):
+            break
+        skin[grow] = True
+    return skin
+
+
+def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: RegionCues, params: Params,
+                    seeds: int = 4) -> tuple[np.ndarray, int]:
+    """The skin grown (`grow_skin`) from whichever of the largest regions grows the most area.
+
+    The largest single region is not always skin: on a coarse CAD mesh one planar cut can outweigh
+    each of the skin's facets, which are joined only by gentle turns. A seed bounded by sharp
+    creases all round that grows over no large region (what a cut looks like) counts only
+    `region_isolated_weight` of its area. The merge threshold is
+    `region_merge_deg` plus `region_merge_noise` times the seed's roughness (the mesh's own noise floor).
+
+    Parameters
+    ----------
+    region : (F,) int region id per face, 0..R-1
+    topo : the mesh's `Topology`
+    turn : (E,) degrees, `boundary_turn`
+    cues : the partition's `RegionCues`
+    params : `Params`, its region_* fields
+    seeds : at most this many seeds tried, largest first
+
+    Returns
+    -------
+    skin : (R,) bool
+    seed : the region the skin grew from
+    """
+    share = cues.area / max(cues.area.sum(), 1e-300)
+    sharp_all_round = cues.values[:, CUE_NAMES.index("rim_sharp_share")] >= params.region_sharp_rim
+    relay = share >= params.region_relay_share
+    order = np.argsort(-share)
+    best, best_seed, best_score = None, int(order[0]), -1.0
+    for seed in order[:seeds]:
+        if seed != order[0] and not relay[seed]:
+            break
+        merge_deg = params.region_merge_deg + params.region_merge_noise * cues.roughness_deg[seed]
+        rough = cues.rough_ratio(seed, params.region_noise_floor_deg)
+        skin = grow_skin(region, topo, turn, int(seed), rough, merge_deg, params.region_rough_max, relay)
+        score = cues.area[skin].sum()
+        if sharp_all_round[seed] and share[skin].sum() < share[seed] + params.region_relay_share:
+            # grew over nothing large: a cut looks like this, a facet of the skin rarely
+            score *= params.region_isolated_weight
+        if score > best_score:
+            best, best_seed, best_score = skin, int(seed), float(score)
+    return best, best_seed
+
+
+def region_fracture_prob(cues: RegionCues, skin: np.ndarray, seed: int, params: Params,
+                         wall: float = np.inf) -> np.ndarray:
+    """Fracture likelihood per region in [0, 1] (> 0.5: fracture) from the grown skin and the cues.
+
+    Parameters
+    ----------
+    cues : the partition's `RegionCues`
+    skin : (R,) bool, the grown skin (`skin_from_seeds`)
+    seed : its seed region
+    wall : the wall's thickness relative to the size (`wall_thickness`): on a thin wall the
+        fracture is a band about one wall wide, and wider flat regions are skin (a vessel's bottom)
+    params : `Params`, its region_* fields: outside the grown skin, regions are skin when curved and
+        as smooth as the skin (a vessel's inner face), or, where the break is evidently rough, when
+        as smooth as the skin (a slab's other sides); the rest is fracture (bounded by creases
+        too sharp to grow over)
+
+    Returns
+    -------
+    (R,) float
+    """
+    rough = np.log(cues.rough_ratio(seed, params.region_noise_floor_deg))
+
+    def step(x):
+        return 1.0 / (1.0 + np.exp(-np.clip(x / params.region_softness, -50, 50)))
+
+    def cue(name):
+        return cues.values[:, CUE_NAMES.index(name)]
+    rest = ~skin
+    rough_share = cues.area[rest & (rough > params.region_context_rough)].sum() / max(cues.area[rest].sum(), 1e-300)
+    rough_break = step(np.log((rough_share + 1e-6) / params.region_context_share))
+    smooth = step(params.region_curved_rough - rough)
+    curved = step(cue("log_unflatness") - params.region_curved_unflatness) * smooth
+    other_side = rough_break * step(params.region_context_smooth - rough)
+    thin = float(wall < params.region_thin_wall)
+    wide = thin * step(cue("log_width_size") - np.log(params.region_band_walls * wall + 1e-6)) * smooth
+    prob = 1.0 - np.max([curved, other_side, wide], axis=0)
+    # grown skin: below 0.5, nearer it the rougher the region is than the seed
+    return np.where(skin, 0.5 * step(rough - params.region_curved_rough), prob)
+
+
+def cue_labels(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, areas: np.ndarray, topo: Topology,
+               edge_angle: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Crease regions and their fracture likelihood (`Params.segmentation == "regions"`).
+
+    Parameters
+    ----------
+    vertices : (V, 3)
+    faces : (F, 3) int
+    normals : (F, 3) unit face normals
+    areas : (F,) face areas
+    topo : the mesh's `Topology`
+    edge_angle : (E,) degrees
+    params : `Params`
+
+    Returns
+    -------
+    region : (F,) int64 region id per face, 0..R-1
+    prob : (R,) fracture likelihood in [0, 1] (> 0.5: fracture)
+    """
+    region = crease_regions(normals, areas, topo, edge_angle)
+    cues = region_cues(vertices, normals, areas, topo, edge_angle, region)
+    turn = boundary_turn(normals, areas, topo, region)
+    skin, seed = skin_from_seeds(region, topo, turn, cues, params)
+    wall = wall_thickness(np.asarray(vertices, np.float64)[faces].mean(1), normals, areas, skin[region])
+    return region, region_fracture_prob(cues, skin, seed, params, wall)
+
+
+def wall_thickness(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, skin: np.ndarray,
+                   neighbours: int = 24) -> float:
+    """The wall's thickness relative to the piece's size where the skin faces a parallel opposite
+    face nearby (a vessel's inner and outer faces), else inf.
+
+    Parameters
+    ----------
+    centers : (F, 3) face centroids
+    normals : (F, 3) unit face normals
+    areas : (F,) face areas
+    skin : (F,) bool, faces of the grown skin
+    neighbours : nearest faces searched for the opposite one
+
+    Returns
+    -------
+    float: the area-weighted median distance, along the normal, from a skin face to the nearest
+    face turned the other way, over the skin faces that have one, divided by the bounding-box
+    diagonal; inf when less than half of the skin has one or the thickness varies (quartiles more
+    than a factor 2 apart)
+    """
+    size = float(np.linalg.norm(centers.max(0) - centers.min(0))) if len(centers) else 0.0
+    if not skin.any() or size <= 0 or len(centers) < 4:
+        return np.inf
+    idx = np.flatnonzero(skin)
+    _, near = cKDTree(centers).query(centers[idx], k=min(neighbours, len(centers)))
+    gap = np.einsum("fkd,fd->fk", centers[idx][:, None] - centers[near], normals[idx])
+    opposite = (np.einsum("fkd,fd->fk", normals[near], normals[idx]) < -0.7) & (gap > 0)
+    depth = np.where(opposite, gap, np.inf).min(1)
+    has = np.isfinite(depth) & (depth > 1e-3 * size)
+    if areas[idx][has].sum() < 0.5 * areas[idx].sum():
+        return np.inf
+    order = np.argsort(depth[has])
+    w = np.cumsum(areas[idx][has][order])
+    q25, q50, q75 = depth[has][order][np.searchsorted(w, np.array([0.25, 0.5, 0.75]) * w[-1])]
+    return float(q50) / size if q75 < 2 * q25 else np.inf  # a wall is about as thick everywhere
