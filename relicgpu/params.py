@@ -37,6 +37,7 @@ class Params:
     region_context_rough: float = 0.6  # when regions rougher than this (log ratio) ...
     region_context_share: float = 0.05  # ... cover this share of the non-skin area, the break is rough:
     region_context_smooth: float = 0.2  # ... regions smoother than this (log ratio) are skin then
+    region_grown_rough: float = 0.8  # grown regions rougher than this (log ratio) are fracture where the break is rough
     region_thin_wall: float = 0.04   # skin facing itself across less than this (of the size) is a thin wall ...
     region_band_walls: float = 2.5   # ... whose fracture is a band: smooth regions wider than this many walls are skin
     region_softness: float = 0.15    # log-unit width of the logistic steps grading the likelihood

@@ -13,8 +13,9 @@ creases:
 3. `region_fracture_prob`: regions outside the grown skin are fracture (bounded by creases too
    sharp to grow over), unless curved and as smooth as the skin (a vessel's inner face), or as
    smooth as the skin where the break is evidently rough (a slab's other sides), or, on a thin
-   wall (`wall_thickness`), smooth and wider than a few walls (a vessel's bottom). Logistic steps
-   make it a graded likelihood, > 0.5 exactly on the fracture.
+   wall (`wall_thickness`), smooth and wider than a few walls (a vessel's bottom). Grown regions
+   are fracture where the break is evidently rough and they are too. Logistic steps make it a
+   graded likelihood, > 0.5 exactly on the fracture.
 
 Measured (scripts/bench_segment.py; thresholds fitted with corpus smooth-noisy, vessel-coarse and
 the Blender cylinder held out) in the commit message that introduced the "regions" method.
@@ -332,8 +333,11 @@ def region_fracture_prob(cues: RegionCues, skin: np.ndarray, seed: int, params: 
     thin = float(wall < params.region_thin_wall)
     wide = thin * step(cue("log_width_size") - np.log(params.region_band_walls * wall + 1e-6)) * smooth
     prob = 1.0 - np.max([curved, other_side, wide], axis=0)
-    # grown skin: below 0.5, nearer it the rougher the region is than the seed
-    return np.where(skin, 0.5 * step(rough - params.region_curved_rough), prob)
+    # grown skin: below 0.5, nearer it the rougher the region is than the seed; fracture where the
+    # break is evidently rough and the region is too (a rough cut met at a shallow angle)
+    grown = np.maximum(0.5 * step(rough - params.region_curved_rough),
+                       rough_break * step(rough - params.region_grown_rough))
+    return np.where(skin, grown, prob)
 
 
 def cue_labels(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, areas: np.ndarray, topo: Topology,
