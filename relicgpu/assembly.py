@@ -864,7 +864,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
                       [f.file for f in fragments], list(batch.skipped), list(batch.notes), rejected)
     if out_dir is not None:
         t0 = time.perf_counter()
-        write_outputs(result, fragments, out_dir)
+        write_outputs(result, fragments, out_dir, progress=show)
         result.timings["write"] = time.perf_counter() - t0
         result.timings["total"] = time.perf_counter() - t_start
         atomic_write_bytes(Path(out_dir) / "assembly.json", result.to_json().encode())
@@ -940,7 +940,7 @@ def cli_main(args) -> int:
         raise CliError(f"{src}: not a directory")
     if Path(args.out).resolve() == src.resolve():
         raise CliError(f"{args.out}: the output directory must not be the input directory")
-    batch = read_batch(src)
+    batch = read_batch(src, progress=not args.quiet)
     for line in batch.messages():  # every file or crumb left out, even with --quiet
         print(line, file=sys.stderr)
     batch.require(2)

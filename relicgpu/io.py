@@ -8,6 +8,7 @@ beside the target, then a rename), never over an input.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -32,6 +33,7 @@ CRUMB_FRACTION = 0.01
 # resolution: prepare samples a few thousand points a fragment); outputs reload the original.
 THIN_ABOVE = 1_000_000
 THIN_TO = 200_000
+THIN_PASSES = 4  # clustering passes at most, each resizing the cubes towards THIN_TO faces
 
 
 class FragmentError(ValueError):
@@ -132,14 +134,15 @@ def _checked_arrays(label: str, vertices, faces) -> tuple[np.ndarray, np.ndarray
 
 
 def split_bodies(name: str, label: str, source: str | None, parts, thin_above: int | None = None,
-                 ) -> tuple[list[Fragment], list[dict], list[str]]:
+                 progress: bool = True) -> tuple[list[Fragment], list[dict], list[str]]:
     """Split meshes into bodies, drop the crumbs and clean each body kept into a Fragment.
 
     A crumb is a body of less than CRUMB_FRACTION of the largest body's area (over all
     `parts`, e.g. the meshes of one GLB scene). Bodies are numbered by decreasing area;
     when more than one is kept they are named ``name#1``, ``name#2``, ... and the crumbs
     take the numbers after them. A body of more than `thin_above` faces is thinned to
-    about THIN_TO faces (`thin`) before cleaning. Returns (fragments, skipped, notes) as
+    about THIN_TO faces (`thin`, reporting on stderr unless `progress` is False) before
+    cleaning. Returns (fragments, skipped, notes) as
     `fragments_from_arrays`.
     """
     bodies = [(v, f[faces]) for v, f in parts for faces in _body_faces(v, f)]
@@ -152,7 +155,7 @@ def split_bodies(name: str, label: str, source: str | None, parts, thin_above: i
     ids = [name] if len(kept) == 1 else [f"{name}#{k}" for k in range(1, len(bodies) + 1)]
     file = Path(source).name if source else name
     frags = [_clean_body(ids[k], *bodies[i], label if len(kept) == 1 else f"{label} ({ids[k]})", source,
-                         thin_above) for k, i in enumerate(kept)]
+                         thin_above, progress) for k, i in enumerate(kept)]
     skipped = [{"file": file, "name": f"{name}#{k + 1}",
                 "reason": f"{label}: body {k + 1} of {len(bodies)} is a crumb ({len(bodies[i][1])} faces, "
                           f"{100 * areas[i] / largest:.2g}% of the largest body's area); dropped"}
@@ -165,20 +168,19 @@ def split_bodies(name: str, label: str, source: str | None, parts, thin_above: i
 
 
 def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str | None,
-                thin_above: int | None = None) -> Fragment:
+                thin_above: int | None = None, progress: bool = True) -> Fragment:
     """One body's faces -> a Fragment: thinned where it has more than `thin_above` faces;
     degenerate and duplicate faces and unused vertices removed."""
     notes: list[str] = []
     thinned_from = 0
     if thin_above is not None and len(f) > thin_above:
         thinned_from = len(f)
-        v, f = thin(v, f, min(THIN_TO, thin_above), label)
+        v, f = thin(v, f, min(THIN_TO, thin_above), label, progress)
         notes.append(f"{label}: {thinned_from} faces thinned to {len(f)} for matching (vertex clustering); "
                      "the outputs carry the original mesh")
     degenerate = degenerate_faces(v, f)
     # Duplicate faces: the same vertex set, whatever the order.
-    key = np.sort(f, axis=1)
-    _, first = np.unique(key, axis=0, return_index=True)
+    first, _, _ = unique_rows(np.sort(f, axis=1))
     duplicate = np.ones(len(f), bool)
     duplicate[first] = False
     drop = degenerate | duplicate
@@ -188,7 +190,7 @@ def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str
         notes.append(msg)
         f = f[~drop]
     v, f = _used_vertices(v, f)
-    pieces = _body_faces(v, f)
+    pieces = _body_faces(v, f) if drop.any() or thinned_from else [f]
     if len(pieces) > 1:  # only degenerate faces held it together
         f = f[max(pieces, key=lambda p: _area(v, f[p]))]
         v, f = _used_vertices(v, f)
@@ -198,8 +200,9 @@ def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str
     return Fragment(name, v, f.astype(np.int32), source, tuple(notes), thinned_from=thinned_from)
 
 
-def thin(v: np.ndarray, f: np.ndarray, target: int, label: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
-    """Thin a mesh to about `target` faces by vertex clustering, with a progress line on stderr.
+def thin(v: np.ndarray, f: np.ndarray, target: int, label: str = "mesh", progress: bool = True,
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """Thin a mesh to about `target` faces by vertex clustering, reporting on stderr.
 
     Space is cut into cubes of side ``sqrt(2 A / target)`` (A: the surface area, so about
     `target` faces survive); the vertices of a cube merge at their mean, and faces whose
@@ -212,6 +215,9 @@ def thin(v: np.ndarray, f: np.ndarray, target: int, label: str = "mesh") -> tupl
     f : (F, 3) int faces
     target : int
     label : str, names the mesh on the progress line
+    progress : bool
+        A line on stderr when done, and a live bar (one step a clustering pass) while
+        stderr is a terminal; nothing when False (``--quiet``).
 
     Returns
     -------
@@ -219,16 +225,27 @@ def thin(v: np.ndarray, f: np.ndarray, target: int, label: str = "mesh") -> tupl
     faces : (F', 3) int64, F' about `target`
     """
     t0 = time.perf_counter()
-    print(f"thinning {label}: {len(f):,} faces to about {target:,} ...", file=sys.stderr, flush=True)
     side = np.sqrt(2.0 * _area(v, f) / target)
-    for _ in range(4):  # a cube side that lands within 25% of the target
-        vv, ff = _cluster(v, f, side)
-        if 0.75 * target <= len(ff) <= 1.25 * target:
-            break
-        side *= np.sqrt(len(ff) / target)
-    print(f"thinning {label}: {len(f):,} -> {len(ff):,} faces in {time.perf_counter() - t0:.1f} s",
-          file=sys.stderr, flush=True)
+    with progress_bar(THIN_PASSES, f"thinning {Path(label).name}", progress, unit="pass") as bar:
+        for _ in range(THIN_PASSES):  # a cube side that lands within 25% of the target
+            vv, ff = _cluster(v, f, side)
+            bar.update(1)
+            bar.set_postfix_str(f"{len(ff):,} faces")
+            if 0.75 * target <= len(ff) <= 1.25 * target:
+                break
+            side *= np.sqrt(len(ff) / target)
+    if progress:
+        print(f"thinning {label}: {len(f):,} -> {len(ff):,} faces in {time.perf_counter() - t0:.1f} s",
+              file=sys.stderr, flush=True)
     return vv, ff
+
+
+def progress_bar(total: int, desc: str, progress: bool = True, unit: str = "it"):
+    """A tqdm bar on stderr, shown only when `progress` (no ``--quiet``) and stderr is a
+    terminal, as the command line's other bars; it vanishes when done (``leave=False``)."""
+    from tqdm import tqdm
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False, dynamic_ncols=True,
+                disable=not (progress and sys.stderr.isatty()), unit_scale=unit == "faces")
 
 
 def _cluster(v: np.ndarray, f: np.ndarray, side: float) -> tuple[np.ndarray, np.ndarray]:
@@ -243,8 +260,52 @@ def _cluster(v: np.ndarray, f: np.ndarray, side: float) -> tuple[np.ndarray, np.
     centres = np.stack([np.bincount(cluster, weights=v[:, k], minlength=n) for k in range(3)], 1) / counts
     g = cluster[f]
     g = g[(g[:, 0] != g[:, 1]) & (g[:, 1] != g[:, 2]) & (g[:, 0] != g[:, 2])]
-    _, first = np.unique(np.sort(g, axis=1), axis=0, return_index=True)
+    first, _, _ = unique_rows(np.sort(g, axis=1))
     return centres, g[np.sort(first)]
+
+
+def unique_rows(a) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct rows of an integer array, in lexicographic order (as ``np.unique(a, axis=0)``,
+    several times faster and leaner on millions of rows: one int64 sort key where the ranges
+    allow, else a lexsort).
+
+    Parameters
+    ----------
+    a : (N, k) int
+
+    Returns
+    -------
+    first : (U,) int64, the index of each distinct row's first occurrence
+    inverse : (N,) int64, the distinct row of each row
+    counts : (U,) int64, how many rows each distinct row has
+    """
+    a = np.asarray(a, np.int64)
+    n = len(a)
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    low = a.min(0)
+    spans = [int(x) for x in a.max(0) - low + 1]
+    if int(np.prod([float(x) for x in spans])) < 2 ** 62:  # mixed radix, first column most significant
+        key = np.zeros(n, np.int64)
+        for k in range(a.shape[1]):
+            key = key * spans[k] + (a[:, k] - low[k])
+        order = np.argsort(key, kind="stable")
+        key = key[order]
+        new = np.empty(n, bool)
+        new[0] = True
+        np.not_equal(key[1:], key[:-1], out=new[1:])
+        del key
+    else:
+        order = np.lexsort(a.T[::-1])
+        rows = a[order]
+        new = np.empty(n, bool)
+        new[0] = True
+        np.any(rows[1:] != rows[:-1], axis=1, out=new[1:])
+        del rows
+    starts = np.flatnonzero(new)
+    inverse = np.empty(n, np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    return order[starts], inverse, np.diff(np.append(starts, n))
 
 
 def degenerate_faces(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -304,8 +365,8 @@ def _body_faces(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
     # Merge coincident vertices first: many formats (STL) store each triangle apart.
     low = vertices.min(0)
     diag = float(np.linalg.norm(vertices.max(0) - low)) or 1.0
-    _, inverse = np.unique(np.round((vertices - low) / diag, 12), axis=0, return_inverse=True)
-    f = inverse.ravel()[faces]
+    _, inverse, _ = unique_rows(np.round((vertices - low) * (1e12 / diag)))
+    f = inverse[faces]
     n = len(inverse)
     edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
     graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
@@ -323,8 +384,7 @@ def count_bodies(vertices: np.ndarray, faces: np.ndarray) -> int:
 def is_watertight(faces: np.ndarray) -> bool:
     """Every undirected edge is shared by exactly two faces."""
     f = np.asarray(faces, np.int64)
-    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
+    _, _, counts = unique_rows(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1))
     return bool(np.all(counts == 2))
 
 
@@ -338,7 +398,7 @@ def load_fragment(path, name: str | None = None) -> Fragment:
     return _largest_of(frags, skipped, notes, str(path))
 
 
-def load_fragments(path, name: str | None = None, thin_above: int | None = THIN_ABOVE,
+def load_fragments(path, name: str | None = None, thin_above: int | None = THIN_ABOVE, progress: bool = True,
                    ) -> tuple[list[Fragment], list[dict], list[str]]:
     """Read one file into a Fragment per body (or per mesh of a scene), crumbs dropped.
 
@@ -351,6 +411,8 @@ def load_fragments(path, name: str | None = None, thin_above: int | None = THIN_
     thin_above : int or None
         Bodies of more faces are thinned to about THIN_TO faces (`thin`; the fragment's
         ``thinned_from`` and a note say so); None keeps every face.
+    progress : bool
+        Report thinning on stderr (`thin`); False for ``--quiet``.
 
     Returns
     -------
@@ -382,7 +444,29 @@ def load_fragments(path, name: str | None = None, thin_above: int | None = THIN_
     if suffix not in MESH_SUFFIXES:
         raise FragmentError(f"{label}: unknown format {suffix or '(no extension)'!r}; use STL, PLY, OBJ, OFF or GLB")
     parts = [_checked_arrays(label, v, f) for v, f in _read_meshes(p, label)]
-    return split_bodies(name, label, label, parts, thin_above)
+    return split_bodies(name, label, label, parts, thin_above, progress)
+
+
+def load_original(fragment: Fragment) -> Fragment:
+    """A fragment as its file holds it: read again where it was thinned at load (same
+    cleaning, no thinning, nothing on stderr), else the fragment itself (also when the file
+    can no longer be read). A file that is that one body is not split into bodies again.
+    """
+    if not fragment.thinned_from or not fragment.source:
+        return fragment
+    label = fragment.source
+    try:
+        parts = [_checked_arrays(label, v, f) for v, f in _read_meshes(Path(label), label)]
+        if len(parts) == 1 and len(parts[0][1]) == fragment.thinned_from:
+            return _clean_body(fragment.name, *parts[0], label, fragment.source)
+        name = fragment.name
+        for base in [name] + ([name.rsplit("#", 1)[0]] if "#" in name else []):
+            found = [f for f in split_bodies(base, label, label, parts, None, False)[0] if f.name == name]
+            if found:
+                return found[0]
+    except FragmentError:
+        pass
+    return fragment
 
 
 def _read_meshes(p: Path, label: str) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -497,10 +581,11 @@ def fragment_files(directory) -> list[Path]:
     return files
 
 
-def read_batch(fragments_or_dir) -> Batch:
+def read_batch(fragments_or_dir, progress: bool = True) -> Batch:
     """Read a directory, or a list of files and Fragments; a file that cannot be read is skipped.
 
-    Files are named by `fragment_ids`; Fragments given keep their names.
+    Files are named by `fragment_ids`; Fragments given keep their names. `progress`: report
+    the thinning of big meshes on stderr (`thin`); False for ``--quiet``.
     """
     if isinstance(fragments_or_dir, Batch):
         return fragments_or_dir
@@ -520,7 +605,7 @@ def read_batch(fragments_or_dir) -> Batch:
         try:
             with warnings.catch_warnings():  # what cleaning warns of is in the fragments' notes
                 warnings.simplefilter("ignore")
-                frags, skipped, notes = load_fragments(p, next(ids))
+                frags, skipped, notes = load_fragments(p, next(ids), progress=progress)
         except FragmentError as exc:
             batch.skipped.append({"file": p.name, "reason": str(exc)})
             continue
@@ -538,14 +623,16 @@ def load_directory(directory) -> list[Fragment]:
 
 # --- atomic outputs --------------------------------------------------------
 
-def atomic_write_bytes(path, data: bytes) -> None:
-    """Write data to path via a temporary file in the same directory and a rename."""
+@contextlib.contextmanager
+def atomic_open(path):
+    """A binary file to write `path` through: a temporary file in the same directory, renamed
+    over `path` when the block ends without an exception (removed otherwise)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
+        with os.fdopen(fd, "w+b") as fh:
+            yield fh
             fh.flush()
             os.fsync(fh.fileno())
         # mkstemp makes the file private (0600); give it the mode a plain open() would
@@ -561,6 +648,12 @@ def atomic_write_bytes(path, data: bytes) -> None:
         raise
 
 
+def atomic_write_bytes(path, data: bytes) -> None:
+    """Write data to path via a temporary file in the same directory and a rename."""
+    with atomic_open(path) as fh:
+        fh.write(data)
+
+
 def atomic_write_json(path, obj) -> None:
     atomic_write_bytes(path, (json.dumps(obj, indent=2, default=_json_default) + "\n").encode())
 
@@ -573,10 +666,58 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+# A binary STL facet: unit normal, three corners, a zero attribute count (50 bytes).
+STL_FACET = np.dtype([("normal", "<f4", (3,)), ("corners", "<f4", (3, 3)), ("attr", "<u2")])
+STL_CHUNK = 1 << 19  # facets converted at a time (about 40 MB of temporaries)
+
+
+def write_stl(fh, parts, on_faces=None) -> int:
+    """Write meshes into one binary STL, a chunk of faces at a time (nothing the size of the
+    whole file is held in memory); the facet count is filled in at the end (`fh` must seek).
+
+    Parameters
+    ----------
+    fh : binary file open for writing at its start
+    parts : iterable of (vertices (V, 3) float, faces (F, 3) int)
+        Consumed one at a time: a generator can free each mesh once written.
+    on_faces : callable(int), optional
+        Told how many faces each chunk wrote (a progress bar).
+
+    Returns
+    -------
+    int, the facets written
+    """
+    fh.write(b"relicgpu binary STL".ljust(80, b" "))
+    fh.write(np.uint32(0).tobytes())
+    total = 0
+    for vertices, faces in parts:
+        v = np.asarray(vertices, np.float64)
+        for start in range(0, len(faces), STL_CHUNK):
+            tri = v[np.asarray(faces[start:start + STL_CHUNK], np.int64)]  # (c, 3, 3)
+            normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            length = np.linalg.norm(normal, axis=1, keepdims=True)
+            facets = np.zeros(len(tri), STL_FACET)
+            facets["normal"] = np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
+            facets["corners"] = tri
+            fh.write(facets.tobytes())
+            total += len(tri)
+            if on_faces is not None:
+                on_faces(len(tri))
+    end = fh.tell()
+    fh.seek(80)
+    fh.write(np.uint32(total).tobytes())
+    fh.seek(end)
+    return total
+
+
 def write_mesh(path, vertices, faces) -> None:
-    """Write a mesh (format from the suffix) atomically."""
+    """Write a mesh (format from the suffix) atomically; STL through `write_stl`."""
     import trimesh
     path = Path(path)
+    if path.suffix.lower() == ".stl":
+        with atomic_open(path) as fh:
+            write_stl(fh, [(vertices, faces)])
+        return
     data = trimesh.Trimesh(np.asarray(vertices), np.asarray(faces), process=False).export(file_type=path.suffix[1:].lower())
     atomic_write_bytes(path, data if isinstance(data, bytes) else data.encode())
 

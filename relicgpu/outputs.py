@@ -12,16 +12,28 @@ Fragments come in three kinds here:
 
 A fragment thinned at load (`io.Fragment.thinned_from`) is written at full resolution: its
 file is read again when it is written, one fragment at a time, so the thinned and the
-original meshes are never all in memory together.
+original meshes are never all in memory together. Both files are streamed: assembly.glb's
+binary chunk goes to a temporary file a fragment at a time (`write_glb`), merged.stl is
+written a set of fragments at a time (`write_merged`, numpy facets, no trimesh).
+
+Only fragments whose placed bounding boxes overlap are united (`overlap_sets`); the
+others are written side by side, so merged.stl may hold several separate shells (a note
+says so). A lone closed mesh goes in as it is, without manifold3d (`is_closed`).
 """
 from __future__ import annotations
 
 import colorsys
+import io
+import json
+import shutil
+import struct
+import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from .io import Fragment, FragmentError, atomic_write_bytes, load_fragments, write_mesh
+from .io import Fragment, FragmentError, atomic_open, load_original, progress_bar, unique_rows, write_stl
 
 
 def colour(i: int) -> tuple[int, int, int, int]:
@@ -36,51 +48,111 @@ def is_cloud(fragment: Fragment) -> bool:
 
 
 def full_resolution(fragment: Fragment) -> Fragment:
-    """The fragment as its file holds it: read again where it was thinned at load, else itself."""
-    if not fragment.thinned_from or not fragment.source:
-        return fragment
-    bases = [fragment.name] + ([fragment.name.rsplit("#", 1)[0]] if "#" in fragment.name else [])
-    for base in bases:
-        try:
-            frags, _, _ = load_fragments(fragment.source, base, thin_above=None)
-        except FragmentError:
-            return fragment
-        for f in frags:
-            if f.name == fragment.name:
-                return f
-    return fragment
+    """The fragment as its file holds it: read again where it was thinned at load, else itself
+    (`io.load_original`)."""
+    with warnings.catch_warnings():  # what cleaning warns of was said when it was loaded
+        warnings.simplefilter("ignore")
+        return load_original(fragment)
 
 
-def geometry(fragment: Fragment, rgba):
-    """A trimesh geometry of a fragment in one colour: a Trimesh, or a PointCloud without faces.
+# --- assembly.glb, written a fragment at a time -------------------------------------------
+
+GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
+GL_FLOAT, GL_UNSIGNED_BYTE, GL_UNSIGNED_INT = 5126, 5121, 5125
+GL_ARRAY_BUFFER, GL_ELEMENT_ARRAY_BUFFER = 34962, 34963
+GL_POINTS, GL_TRIANGLES = 0, 4
+
+
+def _append_accessor(doc: dict, binary, array: np.ndarray, component: int, kind: str, target: int,
+                     normalized: bool = False, bounds: bool = False) -> int:
+    """Append an array to the binary chunk as one buffer view and accessor of `doc`; its index.
 
     Parameters
     ----------
-    fragment : Fragment
-        (V, 3) vertices, (F, 3) faces (F may be 0).
-    rgba : sequence of 4 ints
+    array : (N, k) or (N,) float32, uint8 or uint32, written as it is (every item a multiple
+        of 4 bytes, so views stay aligned)
     """
-    import trimesh
+    array = np.ascontiguousarray(array)
+    offset = binary.tell()
+    binary.write(memoryview(array).cast("B"))
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": offset, "byteLength": array.nbytes, "target": target})
+    accessor = {"bufferView": len(doc["bufferViews"]) - 1, "componentType": component,
+                "count": int(array.size if kind == "SCALAR" else len(array)), "type": kind}
+    if normalized:
+        accessor["normalized"] = True
+    if bounds:
+        accessor["min"], accessor["max"] = array.min(0).tolist(), array.max(0).tolist()
+    doc["accessors"].append(accessor)
+    return len(doc["accessors"]) - 1
 
+
+def _glb_primitive(doc: dict, binary, fragment: Fragment, rgba) -> dict:
+    """A glTF primitive of a fragment in one colour: triangles with a material, or coloured
+    points for a cloud (glTF has no face colours; per-face colours would split every vertex)."""
+    position = _append_accessor(doc, binary, fragment.vertices.astype(np.float32), GL_FLOAT, "VEC3",
+                                GL_ARRAY_BUFFER, bounds=True)
     if is_cloud(fragment):
-        return trimesh.PointCloud(fragment.vertices, colors=np.tile(rgba, (len(fragment.vertices), 1)))
-    # one material colour, not a colour per face: glTF has no face colours, and trimesh would
-    # split every vertex per face to write them (about 1 GB more on a 5M-face mesh)
-    material = trimesh.visual.material.PBRMaterial(baseColorFactor=list(rgba), metallicFactor=0.0,
-                                                   roughnessFactor=0.8)
-    return trimesh.Trimesh(fragment.vertices, fragment.faces, process=False,
-                           visual=trimesh.visual.TextureVisuals(material=material))
+        colours = np.tile(np.asarray(rgba, np.uint8), (len(fragment.vertices), 1))
+        return {"attributes": {"POSITION": position, "COLOR_0": _append_accessor(
+            doc, binary, colours, GL_UNSIGNED_BYTE, "VEC4", GL_ARRAY_BUFFER, normalized=True)}, "mode": GL_POINTS}
+    doc["materials"].append({"pbrMetallicRoughness": {"baseColorFactor": [c / 255 for c in rgba],
+                                                      "metallicFactor": 0.0, "roughnessFactor": 0.8}})
+    indices = _append_accessor(doc, binary, fragment.faces.astype(np.uint32).ravel(), GL_UNSIGNED_INT, "SCALAR",
+                               GL_ELEMENT_ARRAY_BUFFER)
+    return {"attributes": {"POSITION": position}, "indices": indices, "material": len(doc["materials"]) - 1,
+            "mode": GL_TRIANGLES}
+
+
+def write_glb(fh, items, on_faces=None) -> None:
+    """Write a GLB scene of fragments, one named node and mesh each, at full resolution.
+
+    Each fragment is read (`full_resolution`), appended to a temporary binary chunk and
+    freed before the next: only one original mesh is in memory at a time, and the file is
+    never held whole.
+
+    Parameters
+    ----------
+    fh : binary file open for writing
+    items : iterable of (Fragment, rgba (4 ints 0-255), transform (4, 4))
+    on_faces : callable(int), optional
+        Told the faces (points, for a cloud) of each fragment once written (a progress bar).
+    """
+    doc = {"asset": {"version": "2.0", "generator": "relicgpu"}, "scene": 0, "scenes": [{"nodes": []}],
+           "nodes": [], "meshes": [], "materials": [], "accessors": [], "bufferViews": []}
+    with tempfile.TemporaryFile() as binary:
+        for fragment, rgba, transform in items:
+            full = full_resolution(fragment)
+            doc["meshes"].append({"name": fragment.name, "primitives": [_glb_primitive(doc, binary, full, rgba)]})
+            matrix = np.asarray(transform, np.float64).T.ravel().tolist()  # glTF: column-major
+            doc["nodes"].append({"name": fragment.name, "mesh": len(doc["meshes"]) - 1, "matrix": matrix})
+            doc["scenes"][0]["nodes"].append(len(doc["nodes"]) - 1)
+            if on_faces is not None:
+                on_faces(len(full.faces) or len(full.vertices))
+            del full
+        size = binary.tell()
+        if size:
+            doc["buffers"] = [{"byteLength": size}]
+        text = json.dumps({k: v for k, v in doc.items() if v != []}, separators=(",", ":")).encode()
+        text += b" " * (-len(text) % 4)
+        fh.write(struct.pack("<III", GLB_MAGIC, 2, 12 + 8 + len(text) + (8 + size if size else 0)))
+        fh.write(struct.pack("<II", len(text), GLB_JSON) + text)
+        if size:
+            fh.write(struct.pack("<II", size, GLB_BIN))
+            binary.seek(0)
+            shutil.copyfileobj(binary, fh, 1 << 22)
 
 
 def scene_glb(items) -> bytes:
-    """A GLB scene of (fragment, rgba, 4x4 transform) items, one named node each, at full resolution."""
-    import trimesh
+    """A GLB scene of (fragment, rgba, 4x4 transform) items, one named node each, at full resolution
+    (`write_glb` into memory: for small scenes such as a matched pair)."""
+    buf = io.BytesIO()
+    write_glb(buf, items)
+    return buf.getvalue()
 
-    scene = trimesh.Scene()
-    for fragment, rgba, transform in items:
-        scene.add_geometry(geometry(full_resolution(fragment), rgba), node_name=fragment.name,
-                           geom_name=fragment.name, transform=np.asarray(transform, np.float64))
-    return scene.export(file_type="glb")
+
+def full_faces(fragment: Fragment) -> int:
+    """Faces of the fragment as written (its file's, where thinned at load); points for a cloud."""
+    return fragment.thinned_from or len(fragment.faces) or len(fragment.vertices)
 
 
 def _bbox(points: np.ndarray) -> np.ndarray:
@@ -109,14 +181,19 @@ def group_layout(assembly, fragments: list[Fragment], gap: float = 0.1) -> dict[
     return out
 
 
-def assembly_glb(assembly, fragments: list[Fragment]) -> bytes:
-    """A glTF scene: one named node per fragment, own colour, its transform the fragment's pose
-    followed by its group's translation from `group_layout` (groups side by side); point
-    clouds as points."""
+def assembly_items(assembly, fragments: list[Fragment]):
+    """The (fragment, rgba, transform) items of assembly.glb: one per fragment, own colour, its
+    transform the fragment's pose followed by its group's translation from `group_layout`
+    (groups side by side)."""
     layout = group_layout(assembly, fragments)
-    return scene_glb((frag, colour(i), layout[assembly.groups[i]] @ (
+    return ((frag, colour(i), layout[assembly.groups[i]] @ (
         np.eye(4) if assembly.poses[i] is None else np.asarray(assembly.poses[i])))
         for i, frag in enumerate(fragments))
+
+
+def assembly_glb(assembly, fragments: list[Fragment]) -> bytes:
+    """assembly.glb in memory (see `assembly_items`; `write_outputs` streams it to disk)."""
+    return scene_glb(assembly_items(assembly, fragments))
 
 
 # --- the merged solid ---------------------------------------------------------------
@@ -187,8 +264,125 @@ def _solid_or_surface(frag: Fragment, notes: list[str]):
     return None, frag
 
 
+def is_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """A cheap test that a mesh bounds a solid as it is (no manifold3d, no copy the size of a
+    Manifold): with vertices at equal positions welded, every edge is used once in each
+    direction (closed, consistently oriented) and the signed volume is positive (outward).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    faces : (F, 3) int
+    """
+    if len(faces) == 0:
+        return False
+    _, weld, _ = unique_rows(np.ascontiguousarray(vertices, np.float64).view(np.int64))  # exact positions
+    f = weld[faces]
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    _, _, once = unique_rows(directed)
+    if (once != 1).any():
+        return False
+    _, _, twice = unique_rows(np.sort(directed, axis=1))
+    del directed
+    if (twice != 2).any():
+        return False
+    a, b, c = (np.asarray(vertices, np.float64)[faces[:, k]] for k in range(3))
+    return float(np.einsum("ij,ij->", a, np.cross(b, c))) > 0
+
+
+def overlap_sets(boxes: np.ndarray) -> list[list[int]]:
+    """Sets of boxes that overlap, directly or through others (connected components).
+
+    Parameters
+    ----------
+    boxes : (n, 2, 3) float, each [min corner, max corner]
+
+    Returns
+    -------
+    list of lists of indices, in order of their lowest index
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(boxes)
+    if n == 0:
+        return []
+    overlap = ((boxes[:, None, 0] <= boxes[None, :, 1]) & (boxes[None, :, 0] <= boxes[:, None, 1])).all(-1)
+    _, label = connected_components(coo_matrix(overlap), directed=False)
+    sets: dict[int, list[int]] = {}
+    for i, lab in enumerate(label):
+        sets.setdefault(int(lab), []).append(i)
+    return list(sets.values())
+
+
+# Placed boxes are widened by this fraction of each fragment's size before the overlap test:
+# a thinned mesh's box lies a little inside its original's.
+BOX_MARGIN = 0.05
+
+
+def merged_parts(fragments: list[Fragment], poses: list[np.ndarray], notes: list[str]):
+    """The placed fragments as the meshes of a merged solid, one set of fragments at a time.
+
+    Fragments whose placed boxes overlap (`overlap_sets`) are united with manifold3d; a set
+    of one fragment that already bounds a solid (`is_closed`) is passed on as it is. Each
+    original mesh is read (`full_resolution`) only when its set is reached and freed once
+    its set is yielded. Holes are capped, meshes that cannot be closed kept as open
+    surfaces, point clouds left out; `notes` gets a line for each such decision, and one
+    when the solid holds several separate shells.
+
+    Parameters
+    ----------
+    fragments : list of Fragment
+    poses : list of (4, 4) arrays, file coordinates -> the group's frame
+    notes : list of str, appended to
+
+    Yields
+    ------
+    vertices : (V, 3) float64, placed
+    faces : (F, 3) int
+    """
+    meshes = []
+    for frag, pose in zip(fragments, poses):
+        if is_cloud(frag):
+            notes.append(f"{frag.name}: a point cloud (no faces); left out of merged.stl")
+        else:
+            meshes.append((frag, np.asarray(pose, np.float64)))
+    boxes = np.array([_bbox(_placed(m, f.vertices)) for f, m in meshes]).reshape(-1, 2, 3)
+    margin = BOX_MARGIN * np.array([f.size for f, _ in meshes])[:, None]
+    sets = overlap_sets(boxes + np.stack([-margin, margin], axis=1))
+    if len(sets) > 1:
+        notes.append(f"the merged solid holds {len(sets)} separate shells: fragments whose bounding boxes do not "
+                     "overlap are written side by side, not united")
+    for members in sets:
+        yield from _set_parts([meshes[i] for i in members], notes)
+
+
+def _set_parts(meshes: list, notes: list[str]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The placed meshes of one set of (Fragment, (4, 4) pose) whose boxes overlap: a lone
+    closed mesh as it is, else the union of those that close (`_solid_or_surface`) and the
+    open surfaces of the rest."""
+    import manifold3d as m3d
+
+    parts, solids = [], []
+    for frag, m in meshes:
+        full = full_resolution(frag)
+        if len(meshes) == 1 and is_closed(full.vertices, full.faces):
+            return [(_placed(m, full.vertices), full.faces)]
+        solid, surface = _solid_or_surface(full, notes)
+        del full
+        if solid is not None:
+            solids.append(solid.transform(m[:3, :]))
+        else:
+            parts.append((_placed(m, surface.vertices), surface.faces))
+    if solids:
+        out = (solids[0] if len(solids) == 1 else m3d.Manifold.batch_boolean(solids, m3d.OpType.Add)).to_mesh()
+        del solids
+        parts.insert(0, (np.asarray(out.vert_properties[:, :3], np.float64), np.asarray(out.tri_verts, np.int64)))
+    return parts
+
+
 def merged_solid(fragments: list[Fragment], poses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """The placed fragments united into one solid with manifold3d, watertight where they all close.
+    """The placed fragments as one mesh (`merged_parts` joined), watertight where they all close.
 
     Parameters
     ----------
@@ -201,58 +395,59 @@ def merged_solid(fragments: list[Fragment], poses: list[np.ndarray]) -> tuple[np
     faces : (F, 3) int64
     notes : list of str
         Holes capped, meshes that could not be closed (added as open surfaces: the
-        result is then not watertight), point clouds left out.
+        result is then not watertight), point clouds left out, separate shells.
     """
-    import manifold3d as m3d
-
-    solids, surfaces, notes = [], [], []
-    for frag, pose in zip(fragments, poses):
-        if is_cloud(frag):
-            notes.append(f"{frag.name}: a point cloud (no faces); left out of merged.stl")
-            continue
-        solid, surface = _solid_or_surface(full_resolution(frag), notes)
-        m = np.asarray(pose, np.float64)
-        if solid is not None:
-            solids.append(solid.transform(m[:3, :]))
-        else:
-            surfaces.append((_placed(m, surface.vertices), np.asarray(surface.faces, np.int64)))
-    parts = []
-    if solids:
-        out = m3d.Manifold.batch_boolean(solids, m3d.OpType.Add).to_mesh()
-        parts.append((np.asarray(out.vert_properties[:, :3], np.float64), np.asarray(out.tri_verts, np.int64)))
-    parts += surfaces
+    notes: list[str] = []
+    parts = list(merged_parts(fragments, poses, notes))
     if not parts:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), notes
     offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
     return (np.vstack([v for v, _ in parts]), np.vstack([f + o for (_, f), o in zip(parts, offsets)]), notes)
 
 
-def write_outputs(assembly, fragments: list[Fragment], out_dir) -> list[str]:
+def write_merged(path, fragments: list[Fragment], poses: list[np.ndarray], notes: list[str],
+                 progress: bool = False) -> bool:
+    """Write the merged solid of placed fragments as a binary STL (`merged_parts` streamed into
+    `io.write_stl`: one set of originals in memory at a time); False, and nothing written,
+    when they are all point clouds. `notes` gets the merge's decisions; `progress`: a bar
+    in faces on a terminal."""
+    if all(is_cloud(f) for f in fragments):
+        list(merged_parts(fragments, poses, notes))  # the notes only
+        return False
+    total = sum(full_faces(f) for f in fragments if not is_cloud(f))
+    with progress_bar(total, f"writing {Path(path).name}", progress, unit="faces") as bar, atomic_open(path) as fh:
+        write_stl(fh, merged_parts(fragments, poses, notes), bar.update)
+    return True
+
+
+def write_outputs(assembly, fragments: list[Fragment], out_dir, progress: bool = False) -> list[str]:
     """assembly.glb, and the merged solids: merged.stl is the largest group; when several
     groups have two or more placed fragments, each also gets merged_<group>.stl.
     (assembly.json is written last by `assemble`, once the timings are complete.)
     The notes of the merge are returned, kept in ``assembly.stats["merge_notes"]`` and
-    added to ``assembly.notes`` (so to assembly.json)."""
+    added to ``assembly.notes`` (so to assembly.json). Both files are streamed, one original
+    mesh at a time; `progress`: bars in faces while stderr is a terminal."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sources = [Path(f.source).resolve() for f in fragments if f.source]
     for name in ("assembly.json", "assembly.glb", "merged.stl"):
         if (out / name).resolve() in sources:
             raise FragmentError(f"{out / name}: refusing to overwrite an input file")
-    atomic_write_bytes(out / "assembly.glb", assembly_glb(assembly, fragments))
-    notes = []
+    total = sum(full_faces(f) for f in fragments)
+    with progress_bar(total, "writing assembly.glb", progress, unit="faces") as bar, \
+            atomic_open(out / "assembly.glb") as fh:
+        write_glb(fh, assembly_items(assembly, fragments), bar.update)
+    notes: list[str] = []
     members = assembly.group_members()
     placed_groups = [g for g, m in sorted(members.items()) if any(assembly.poses[i] is not None for i in m)]
     for g in placed_groups:
         m = members[g]
-        v, f, why = merged_solid([fragments[i] for i in m], [assembly.poses[i] for i in m])
-        notes += why
-        if len(f) == 0:
+        name = "merged.stl" if g == placed_groups[0] else f"merged_{g}.stl"
+        if not write_merged(out / name, [fragments[i] for i in m], [assembly.poses[i] for i in m], notes, progress):
             continue
-        if g == placed_groups[0]:
-            write_mesh(out / "merged.stl", v, f)
-        if len(placed_groups) > 1:
-            write_mesh(out / f"merged_{g}.stl", v, f)
+        if name == "merged.stl" and len(placed_groups) > 1:  # the largest group also under its own name
+            with open(out / name, "rb") as src, atomic_open(out / f"merged_{g}.stl") as dst:
+                shutil.copyfileobj(src, dst, 1 << 22)
     if not placed_groups:
         notes.append("no two fragments were joined: no merged.stl written")
     assembly.stats["merge_notes"] = notes

@@ -271,7 +271,15 @@ def test_merged_stl_caps_holes_and_says_what_it_could_not_close():
     v, f, notes = merged_solid([open_sphere, box], [np.eye(4), shift])
     merged = trimesh.Trimesh(v, f, process=False)
     assert merged.is_watertight and merged.body_count == 2
-    assert notes == ["open: open mesh; 2 hole(s) capped to make it a closed solid in merged.stl"]
+    assert notes == ["the merged solid holds 2 separate shells: fragments whose bounding boxes do not overlap "
+                     "are written side by side, not united",
+                     "open: open mesh; 2 hole(s) capped to make it a closed solid in merged.stl"]
+    near = np.eye(4)
+    near[:3, 3] = [0.5, 0, 0]  # boxes that overlap are united into one shell
+    v, f, notes = merged_solid([box, box], [np.eye(4), near])
+    merged = trimesh.Trimesh(v, f, process=False)
+    assert merged.is_watertight and merged.body_count == 1 and notes == []
+    assert np.isclose(merged.volume, 1.5 * _box().volume)
     v, f, notes = merged_solid([box, strip, cloud], [np.eye(4), shift, shift])
     assert len(f) == 12 + 2 and not trimesh.Trimesh(v, f, process=False).is_watertight
     assert any(n.startswith("strip: ") and "not watertight" in n for n in notes)

@@ -679,7 +679,18 @@ def test_each_body_of_a_file_is_its_own_fragment(box):
     client = create_app(ws, prepare=lambda f, scale: prepared.append(f.name) or SimpleNamespace(
         fragment=f, face_region=np.zeros(len(f.faces), np.int64), region_is_fracture=np.array([False]),
         contours=[], timings={})).test_client()
+
+    def counted():  # /api/cases counts bodies without reading meshes where it can
+        case = {c["id"]: c for c in client.get("/api/cases").get_json()["cases"]}["box"]
+        return case["fragments"], case["fragments_exact"]
+
+    n = len(truth["names"])
+    assert counted() == (n + 2, True)  # two.ply's bodies from assembly.json
+    listed = (truth["dir"] / "assembly" / "assembly.json").stat().st_mtime_ns
+    os.utime(frag_dir / "two.ply", ns=(listed + 10**9, listed + 10**9))
+    assert counted() == (n + 1, False)  # two.ply is newer than assembly.json: one, not known
     body = client.get("/api/cases/box/fragments").get_json()
+    assert counted() == (n + 2, True)  # its meshes are read now
     by_name = {f["name"]: f for f in body["fragments"]}
     assert list(by_name) == truth["names"] + ["two#1", "two#2"]
     assert by_name["two#1"]["file"] == by_name["two#2"]["file"] == "two.ply"

@@ -6,7 +6,12 @@ waitress (never Flask's development server, so never its debugger);
 workspace is. The API (all JSON; errors are `{"error": message}` with a 4xx or
 5xx status):
 
-    GET  /api/cases                               the cases of the workspace
+    GET  /api/cases                               the cases of the workspace; "fragments" counts
+                                                  bodies (as /fragments lists them) where known
+                                                  without reading meshes: from meshes already read,
+                                                  else from an assembly.json newer than the file;
+                                                  a file known neither way counts one
+                                                  ("fragments_exact": false then)
     GET  /api/cases/<case>/fragments              fragments (one per body: a file of several bodies
                                                   gives id#1, id#2, ...), poses, groups, object groups
     GET  /api/cases/<case>/fragments/<name>/mesh  that fragment's vertices/faces (base64 float32/uint32)
@@ -127,6 +132,11 @@ class _Cache:
         self._lock = threading.Lock()
         self._key_locks: dict = {}
 
+    def peek(self, key, default=None):
+        """The value kept for key, else default (never computes)."""
+        with self._lock:
+            return self._data.get(key, default)
+
     def get(self, key, compute):
         with self._lock:
             if key in self._data:
@@ -150,6 +160,24 @@ class _Cache:
                 while len(self._data) > self._limit:
                     self._data.popitem(last=False)
             return value
+
+
+def _assembly_bodies(path: Path | None) -> dict[str, tuple[int, int]]:
+    """file -> (fragments assembly.json lists from it, assembly.json's mtime in ns); empty
+    where there is no readable assembly.json. Cheap: no mesh is read."""
+    if path is None:
+        return {}
+    try:
+        mtime = path.stat().st_mtime_ns
+        items = json.loads(path.read_text(encoding="utf-8")).get("fragments")
+    except (OSError, ValueError, AttributeError):
+        return {}
+    out: dict[str, tuple[int, int]] = {}
+    for item in items if isinstance(items, list) else []:
+        file = item.get("file") if isinstance(item, dict) else None
+        if isinstance(file, str):
+            out[file] = (out.get(file, (0, mtime))[0] + 1, mtime)
+    return out
 
 
 def _file_key(path: Path):
@@ -347,6 +375,23 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
     def fragment_of(entry):
         return file_fragments(entry)[entry.body]
 
+    def fragment_count(case) -> tuple[int, bool]:
+        """(fragments of a case, exact): its bodies, counted without reading a mesh (see the
+        module docstring for /api/cases); exact is False where a file's bodies are unknown."""
+        files = ws.fragments(case).values()
+        listed = _assembly_bodies(ws.assembly_file(case, "assembly.json"))
+        count, exact = 0, True
+        for e in files:
+            key = _file_key(e.path)
+            loaded = meshes.peek(key)
+            if loaded is not None:
+                count += len(loaded)
+            elif e.file in listed and listed[e.file][1] >= key[1]:
+                count += listed[e.file][0]
+            else:
+                count, exact = count + 1, False
+        return count, exact
+
     def case_scale(case) -> float:
         files = list(ws.fragments(case).values())
         key = tuple(_file_key(e.path) for e in files)  # stat only: no mesh reloads once known
@@ -420,10 +465,11 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
     def api_cases():
         out = []
         for case in ws.cases().values():
+            count, exact = fragment_count(case)
             out.append({
                 "id": case.id,
-                "fragments": len(ws.fragments(case)),  # files: a file of several bodies lists them all
-                                                        # under /fragments, once read
+                "fragments": count,
+                "fragments_exact": exact,
                 "assembled": ws.assembly_file(case, "assembly.json") is not None,
                 "truth": (case.path / "truth.json").is_file(),
             })
