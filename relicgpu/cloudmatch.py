@@ -32,6 +32,14 @@ def cloud_likelihood(points: np.ndarray, given_normals: np.ndarray | None, sprea
     return fracture_likelihood(points, rough_normals, spreads=spreads)
 
 
+def fracture_points(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
+                    spreads: float | None = None) -> np.ndarray:
+    """Indices of a cloud's fracture points: those of fracture likelihood >= 0.5 (`cloud_likelihood`
+    of the (N, 3) points and optional (N, 3) normals), at most params.icp_points spread evenly."""
+    fracture = np.flatnonzero(cloud_likelihood(points, given_normals, spreads) >= 0.5)
+    return fracture[even_subsample(points[fracture], params.icp_points)]
+
+
 def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
                  scale: float, spreads: float | None = None) -> SurfaceSample:
     """The sample a cloud is matched on.
@@ -46,17 +54,26 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
 
     Returns
     -------
-    SurfaceSample whose fracture points (at most params.icp_points, spread evenly) are the
-    points of fracture likelihood >= 0.5, and whose surface is up to 2 * icp_points of all.
+    SurfaceSample whose fracture points are `fracture_points`, and whose surface is up to
+    2 * icp_points of all.
     """
     points = np.asarray(points, np.float64)
     normals = estimate_normals(points, given_normals)
-    fracture = np.flatnonzero(cloud_likelihood(points, given_normals, spreads) >= 0.5)
-    fracture = fracture[even_subsample(points[fracture], params.icp_points)]
+    fracture = fracture_points(points, given_normals, params, spreads)
     surf = even_subsample(points, 2 * params.icp_points)
     plane_normals = smoothed_normals(points[fracture], normals[fracture], params.ppf_normal_radius * scale)
     return SurfaceSample(points[fracture], np.zeros(len(fracture), np.int64), normals[fracture], points[surf],
                          normals[surf], plane_normals)
+
+
+def fracture_roughness(points: np.ndarray, given_normals: np.ndarray | None, params: Params) -> float:
+    """How far a cloud's fracture sample (`fracture_points`) strays from a plane at the scale the
+    contact is measured at: the median RMS distance of each sample point's ROUGHNESS_FIT nearest
+    sample points from their plane fit (noise and the break's own relief together)."""
+    fracture = np.asarray(points, np.float64)[fracture_points(points, given_normals, params)]
+    if len(fracture) < ROUGHNESS_FIT:
+        return 0.0
+    return float(np.sqrt(np.median(np.maximum(local_pca(fracture, ROUGHNESS_FIT)[0][:, 0], 0.0))))
 
 
 # Two samplings of a rough break, a point spacing apart, never share points: the residual to the
@@ -65,6 +82,12 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
 # the verification's contact distance and residual limit are at least these many spacings.
 CONTACT_SPACINGS = 1.0
 RESIDUAL_SPACINGS = 0.4
+# ... and at least this many times the two fracture samples' roughness combined
+# (`fracture_roughness`, root of the summed squares), measured over ROUGHNESS_FIT points: the
+# residual of right fits is 0.68-1.03 times it on 22 synthetic pairs without normals, the noise
+# of a scan and the relief of its break raise both alike.
+RESIDUAL_ROUGHNESS = 1.15
+ROUGHNESS_FIT = 8
 # Where two clouds' surfaces touch after a fit, at least this share of the touching points must
 # face each other (`verify.facing_share`, normals oriented by visibility). Measured on 24
 # synthetic pairs without normals and 24 with: right fits 0.51-0.92, gross wrong fits (60-160
@@ -89,10 +112,13 @@ def is_cloud(fragment) -> bool:
 
 def cloud_params(params: Params, fragments, scale: float) -> Params:
     """params with the verification's contact distance and residual limit raised to the point
-    spacing of the pair's clouds (fragments without faces; a pair of meshes keeps params)."""
+    spacing of the pair's clouds, and the residual limit to their fracture roughness
+    (fragments without faces; a pair of meshes keeps params)."""
     clouds = [f for f in fragments if is_cloud(f)]
     if not clouds:
         return params
     spacing = max(point_spacing(np.asarray(f.vertices, np.float64)) for f in clouds) / scale
+    roughness = np.hypot(*[fracture_roughness(f.vertices, getattr(f, "normals", None), params) / scale
+                           for f in (clouds * 2)[:2]])
     return params.with_(contact_distance=max(params.contact_distance, CONTACT_SPACINGS * spacing),
-                        max_rmse=max(params.max_rmse, RESIDUAL_SPACINGS * spacing))
+                        max_rmse=max(params.max_rmse, RESIDUAL_SPACINGS * spacing, RESIDUAL_ROUGHNESS * roughness))
