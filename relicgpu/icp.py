@@ -157,9 +157,22 @@ def facing_poses(centre_a, normal_a, centre_b, normal_b, steps: int) -> np.ndarr
     return out
 
 
+def _pair_weights(used: np.ndarray, idx: np.ndarray, weights: np.ndarray | None,
+                  target_weights: np.ndarray | None) -> np.ndarray:
+    """(H,N) weights of the nearest pairs (source point i, target point idx[h, i]): `used` (H,N)
+    times the source point's weight (N,) and the target point's (M,) where given."""
+    w = used.astype(np.float64)
+    if weights is not None:
+        w = w * weights[None]
+    if target_weights is not None:
+        w = w * target_weights[idx]
+    return w
+
+
 def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backend, iterations: int,
                 reject: float, floor: float, tolerance: float = 0.0, trim: float = 0.5,
-                index=None) -> tuple[np.ndarray, np.ndarray]:
+                index=None, weights: np.ndarray | None = None,
+                target_weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """ICP (Alg. 5, as `icp`) for many starting poses at once: every round is ONE nearest-neighbour
     launch over all hypotheses' points. Stops after `iterations` rounds or when no hypothesis's
     mean distance changes by `tolerance` or more. Returns the poses and each one's share of source
@@ -168,9 +181,14 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
     Pairs count when nearer than 3x the `trim` quantile of the distances (within [floor, reject]):
     where only part of the source touches the target (a partial contact) a low quantile keeps
     the rest of the source from dragging the fit off. index: the target's nearest-neighbour
-    index where the caller keeps one."""
+    index where the caller keeps one.
+
+    weights : (N,) optional, of the source points; target_weights : (M,) optional, of the target
+        points (fracture likelihoods): a pair weighs the product in the cross-covariance, and
+        the share counts source points by their weight."""
     poses = np.array(poses, np.float64)
     h, n = len(poses), len(source)
+    point_weight = np.ones(n) if weights is None else np.asarray(weights, np.float64)
     share = np.zeros(h)
     prev = np.full(h, np.inf)
     index = backend.nearest_index(target) if index is None else index  # one upload (and grid) for all rounds
@@ -180,8 +198,8 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
         idx = np.asarray(idx, np.int64).reshape(h, n)
         dist = np.asarray(dist, np.float64).reshape(h, n)
         cutoff = np.maximum(floor, np.minimum(reject, 3.0 * np.quantile(dist, trim, axis=1)))
-        w = (dist < cutoff[:, None]).astype(np.float64)
-        share = (dist < floor).mean(axis=1)
+        w = _pair_weights(dist < cutoff[:, None], idx, weights, target_weights)
+        share = (dist < floor) @ point_weight / max(point_weight.sum(), 1e-12)
         wsum = np.maximum(w.sum(axis=1), 1e-12)
         matched = target[idx]
         cs = np.matmul(w[:, None, :], moved)[:, 0] / wsum[:, None]
@@ -196,7 +214,7 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
         step = np.tile(np.eye(4), (h, 1, 1))
         step[:, :3, :3] = r
         step[:, :3, 3] = ct - np.einsum("hij,hj->hi", r, cs)
-        ok = w.sum(axis=1) >= 3
+        ok = (w > 0).sum(axis=1) >= 3
         poses[ok] = step[ok] @ poses[ok]
         mean = (w * dist).sum(axis=1) / wsum
         if tolerance > 0 and np.all(np.abs(prev - mean) < tolerance):
@@ -206,7 +224,8 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
 
 
 def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, init: np.ndarray,
-                          backend, iterations: int, cutoff: float, index=None) -> np.ndarray:
+                          backend, iterations: int, cutoff: float, index=None, weights: np.ndarray | None = None,
+                          target_weights: np.ndarray | None = None) -> np.ndarray:
     """Polish converged poses by minimising distances to the target's tangent planes.
 
     Two samplings of one surface never share points, so point-to-point ICP stops at the
@@ -217,7 +236,8 @@ def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals
 
     The step turns about the moved source's centroid and is solved in units of the source's
     RMS radius, so that the result does not depend on the units or on how far from the
-    origin the points lie (a turn about a far origin is mostly translation).
+    origin the points lie (a turn about a far origin is mostly translation). weights (N,) and
+    target_weights (M,): optional, as in `batched_icp`.
     """
     poses = np.array(init, np.float64)
     single = poses.ndim == 2
@@ -233,13 +253,14 @@ def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals
         moved = np.matmul(source, np.swapaxes(poses[live, :3, :3], 1, 2)) + poses[live, None, :3, 3]
         idx, dist = index.query(moved.reshape(-1, 3))
         idx = np.asarray(idx, np.int64).reshape(len(live), n)
-        keep = (np.asarray(dist).reshape(len(live), n) < cutoff).astype(np.float64)
-        enough = keep.sum(axis=1) >= 6
+        keep = _pair_weights(np.asarray(dist).reshape(len(live), n) < cutoff, idx, weights, target_weights)
+        enough = (keep > 0).sum(axis=1) >= 6
         q, nrm = target[idx], target_normals[idx]
         centre = moved.mean(axis=1, keepdims=True)
         arm = (moved - centre) / radius
-        a = np.concatenate([np.cross(arm, nrm), nrm], axis=2) * keep[..., None]
-        b = -np.einsum("hij,hij->hi", moved - q, nrm) / radius
+        root = np.sqrt(keep)  # each pair's residual weighs keep in the normal equations
+        a = np.concatenate([np.cross(arm, nrm), nrm], axis=2) * root[..., None]
+        b = -np.einsum("hij,hij->hi", moved - q, nrm) / radius * root
         ata = np.matmul(np.swapaxes(a, 1, 2), a) + 1e-12 * np.eye(6)
         atb = np.matmul(np.swapaxes(a, 1, 2), b[..., None])[..., 0]
         for k, h in enumerate(live):

@@ -23,8 +23,9 @@ class Params:
     min_region_faces: int = 12       # smaller regions are merged into their neighbour ...
     min_region_share: float = 0.01   # ... as are regions with less than this share of the faces
     # "roughness": Otsu split of the roughness + vote (above); "regions": crease regions, skin grown
-    # from the largest over gentle boundaries, the rest by shape cues (segment_cues, issue 16 item 2)
-    segmentation: str = "roughness"
+    # from the largest over gentle boundaries, the rest by shape cues (segment_cues, issue 16 item 2);
+    # "union": both, a face's fracture likelihood the larger of the two (faces either finds are candidates)
+    segmentation: str = "union"
     region_merge_deg: float = 35.0   # regions join the skin across boundaries turning less than this ...
     region_merge_noise: float = 2.0  # ... plus this many times the skin's roughness (degrees) ...
     region_rough_max: float = 3.0    # ... unless rougher than this many times the skin
@@ -76,7 +77,9 @@ class Params:
     screen_trim: float = 0.05        # ... as are those farther than 3x this quantile of the distances
 
     # ICP (Eq. 34-35, Alg. 5)
-    icp_points: int = 1500           # fracture points sampled per fragment
+    icp_points: int = 1500           # fracture points sampled per fragment ...
+    sample_min_prob: float = 0.2     # ... from faces of at least this fracture likelihood, weighted by it
+    sample_min_share: float = 0.02   # under this likelihood-weighted area share: the whole surface, uniformly
     icp_iterations: int = 40
     icp_tolerance: float = 1e-5      # stop when the mean distance d changes less than this
     verify_at_most: int = 6          # fits verified per pair, best-touching first, until one is accepted

@@ -106,26 +106,54 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     t2 = time.perf_counter()
     timings["contours+features"] = t2 - t1
 
-    sample = _surface_sample(fragment, seg, params.icp_points, params.ppf_normal_radius * scale)
-    patches = fracture_patches(fragment, seg)
+    prob = sampling_prob(seg, params)
+    sample = _surface_sample(fragment, seg, prob, params.icp_points, params.ppf_normal_radius * scale)
+    patches = fracture_patches(fragment, seg, prob)
     timings["sample"] = time.perf_counter() - t2
     return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, patches, timings)
 
 
-def _surface_sample(fragment: Fragment, seg, n_points: int, plane_radius: float) -> SurfaceSample:
-    """An even subsample of fracture-face vertices and of all vertices (with normals)."""
+@dataclass(frozen=True)
+class WeightedSample(SurfaceSample):
+    """A mesh fragment's `SurfaceSample` with the fracture likelihood of each fracture point."""
+    fracture_weight: np.ndarray | None = None  # (P,) in (0, 1]: matching weighs each point by it
+
+
+def fracture_weight(sample: SurfaceSample) -> np.ndarray:
+    """(P,) weight of each fracture point of a sample: its `fracture_weight`, else 1 (clouds)."""
+    w = getattr(sample, "fracture_weight", None)
+    return np.ones(len(sample.fracture)) if w is None else w
+
+
+def sampling_prob(seg, params: Params) -> np.ndarray:
+    """(F,) fracture likelihood the fracture sample is drawn with: `face_fracture_prob` where at
+    least `sample_min_prob` (0 elsewhere); where that likelihood-weighted area is under
+    `sample_min_share` of the fragment's (segmentation found next to no fracture) 1 on every face,
+    so that the whole surface is matched and verification decides."""
+    prob = np.where(seg.face_fracture_prob >= params.sample_min_prob, seg.face_fracture_prob, 0.0)
+    if (seg.areas * prob).sum() < params.sample_min_share * seg.areas.sum():
+        return np.ones(len(prob))
+    return prob
+
+
+def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, plane_radius: float) -> WeightedSample:
+    """An even subsample of the vertices of faces of fracture likelihood prob (F,) > 0 (each
+    weighted by the largest likelihood of its faces) and of all vertices (with normals)."""
     v, f = fragment.vertices, fragment.faces
     normals = vertex_normals(v, f, seg.normals, seg.areas)
-    frac_faces = np.flatnonzero(seg.fracture_faces)
+    frac_faces = np.flatnonzero(prob > 0)
+    frac_faces = frac_faces[np.argsort(prob[frac_faces], kind="stable")]  # the likeliest face assigned last
+    vertex_weight = np.zeros(len(v))
+    np.maximum.at(vertex_weight, f[frac_faces].ravel(), np.repeat(prob[frac_faces], 3))
     vertex_region = np.full(len(v), -1)
     vertex_region[f[frac_faces].ravel()] = np.repeat(seg.face_region[frac_faces], 3)
-    frac_vertices = np.flatnonzero(vertex_region >= 0)
+    frac_vertices = np.flatnonzero(vertex_weight > 0)
     # spread evenly over space, not drawn at random: the same sample up to units (issue 15)
     frac_vertices = frac_vertices[even_subsample(v[frac_vertices], n_points)]
     surf = even_subsample(v, 2 * n_points)
     plane_normals = smoothed_normals(v[frac_vertices], normals[frac_vertices], plane_radius)
-    return SurfaceSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf], normals[surf],
-                         plane_normals)
+    return WeightedSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf],
+                          normals[surf], plane_normals, fracture_weight=vertex_weight[frac_vertices])
 
 
 def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
@@ -150,15 +178,17 @@ class Patch:
     area: float
 
 
-def fracture_patches(fragment: Fragment, seg) -> list[Patch]:
+def fracture_patches(fragment: Fragment, seg, prob: np.ndarray | None = None) -> list[Patch]:
     """The fracture facets (regions between creases, before neighbouring fracture regions are
-    joined): one per cut a fragment met, each a candidate contact with one neighbour."""
+    joined): one per cut a fragment met, each a candidate contact with one neighbour. Faces count
+    by area times fracture likelihood prob (F,) (default: the segmentation's hard labels)."""
+    prob = seg.fracture_faces.astype(np.float64) if prob is None else prob
     centres = fragment.vertices[fragment.faces].mean(axis=1)
-    fracture = seg.fracture_faces
+    weight = seg.areas * prob
     out = []
-    for r in np.unique(seg.face_facet[fracture]):
-        m = (seg.face_facet == r) & fracture
-        w = seg.areas[m]
+    for r in np.unique(seg.face_facet[weight > 0]):
+        m = (seg.face_facet == r) & (weight > 0)
+        w = weight[m]
         n = (seg.normals[m] * w[:, None]).sum(0)
         if w.sum() <= 0 or np.linalg.norm(n) == 0:
             continue
@@ -178,11 +208,22 @@ def _distinct(poses: np.ndarray, order: np.ndarray, count: int, tol: float) -> l
     return taken
 
 
+def _ppf_index(sample: SurfaceSample, n: int) -> np.ndarray:
+    """Indices of up to n fracture points spread over the sample."""
+    return np.linspace(0, len(sample.fracture) - 1, min(n, len(sample.fracture))).astype(np.int64)
+
+
 def ppf_points(sample: SurfaceSample, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Up to n fracture points spread over the sample, with their plane-fit normals."""
-    idx = np.linspace(0, len(sample.fracture) - 1, min(n, len(sample.fracture))).astype(np.int64)
+    """Up to n fracture points spread over the sample, with their plane-fit normals: (n,3) each."""
+    idx = _ppf_index(sample, n)
     normals = sample.fracture_plane_normals if sample.fracture_plane_normals is not None else sample.fracture_normals
     return sample.fracture[idx], normals[idx]
+
+
+def ppf_weights(sample: SurfaceSample, n: int) -> np.ndarray:
+    """(n,) weights of `ppf_points`' points: fracture likelihoods over the largest (only ratios count)."""
+    w = fracture_weight(sample)[_ppf_index(sample, n)]
+    return w / (w.max() if len(w) else 1.0)
 
 
 _PPF_TABLES: dict = {}  # (points digest, settings) -> table: a fragment meets many partners
@@ -193,7 +234,8 @@ def _ppf_table(sample: SurfaceSample, params: Params, scale: float, role: str) -
     flipped, every third point a reference), built once per fragment and kept for a few. Keyed by
     content, not identity: an engine's worker gets a fresh copy of a fragment with every job."""
     points, normals = ppf_points(sample, params.ppf_points)
-    key = (hashlib.blake2b(points.tobytes() + normals.tobytes(), digest_size=16).digest(),
+    weights = ppf_weights(sample, params.ppf_points)
+    key = (hashlib.blake2b(points.tobytes() + normals.tobytes() + weights.tobytes(), digest_size=16).digest(),
            role, params.ppf_points, params.ppf_distance_step * scale, params.ppf_angle_step_deg,
            params.ppf_max_distance * scale)
     table = _PPF_TABLES.pop(key, None)  # re-inserted last: the least recently used goes first
@@ -201,10 +243,10 @@ def _ppf_table(sample: SurfaceSample, params: Params, scale: float, role: str) -
         step = params.ppf_distance_step * scale
         reach = params.ppf_max_distance * scale if params.ppf_max_distance > 0 else None
         if role == "model":
-            table = pair_table(points, normals, step, params.ppf_angle_step_deg, max_distance=reach)
+            table = pair_table(points, normals, step, params.ppf_angle_step_deg, max_distance=reach, weights=weights)
         else:
             table = pair_table(points, -normals, step, params.ppf_angle_step_deg, reference_stride=3, sort=False,
-                               max_distance=reach)
+                               max_distance=reach, weights=weights)
         while len(_PPF_TABLES) >= 12:
             _PPF_TABLES.pop(next(iter(_PPF_TABLES)))
     _PPF_TABLES[key] = table
@@ -315,20 +357,24 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
             indexes[id(points)] = (points, be.nearest_index(points))
         return indexes[id(points)][1]
 
+    w_a, w_b = fracture_weight(pa.sample), fracture_weight(pb.sample)
     candidates = []
     if starts:
         # rank every start by a short batched ICP on a small sample, keep the best few. The screen
         # fits only the nearest twentieth of the points (screen_trim): its reject distance is wide
         # for starts 20 degrees off, and a contact of an eighth of b's fracture, nearest fifth
         # trimmed in, was dragged off by the rest of b bending away (a true start lost its share)
-        sub_b = pb.sample.fracture[:: max(1, len(pb.sample.fracture) // params.screen_points)]
+        every = max(1, len(pb.sample.fracture) // params.screen_points)
+        sub_b, sub_w = pb.sample.fracture[::every], w_b[::every]
         reject, floor = params.screen_reject * scale, params.contact_distance * scale
         poses, share = batched_icp(sub_b, pa.sample.fracture, np.array(starts), be, params.screen_iterations,
-                                   reject, floor, trim=params.screen_trim, index=index_of(pa.sample.fracture))
+                                   reject, floor, trim=params.screen_trim, index=index_of(pa.sample.fracture),
+                                   weights=sub_w, target_weights=w_a)
         # the most promising starts go on longer (a start can be 20 degrees off)
         keep = np.argsort(-share, kind="stable")[: params.screen_keep]
         poses, share = batched_icp(sub_b, pa.sample.fracture, poses[keep], be, params.screen_more_iterations,
-                                   reject, floor, trim=params.screen_trim, index=index_of(pa.sample.fracture))
+                                   reject, floor, trim=params.screen_trim, index=index_of(pa.sample.fracture),
+                                   weights=sub_w, target_weights=w_a)
         order = _distinct(poses, np.argsort(-share, kind="stable"), params.hypotheses, 0.02 * scale)
         candidates = [(share[k], poses[k], *origins[keep[k]][1:]) for k in order]
     timings["coarse"] = time.perf_counter() - t0
@@ -339,11 +385,11 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
         # ICP of all hypotheses together (one nearest-neighbour launch per round), then each polished
         fine, share = batched_icp(pb.sample.fracture, pa.sample.fracture, np.array([c[1] for c in candidates]), be,
                                   params.icp_iterations, params.icp_reject * scale, params.contact_distance * scale,
-                                  params.icp_tolerance * scale, params.icp_trim, index_of(pa.sample.fracture))
+                                  params.icp_tolerance * scale, params.icp_trim, index_of(pa.sample.fracture), w_b, w_a)
         best_first = np.argsort(-share, kind="stable")[: params.verify_at_most]
         polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
                                          fine[best_first], be, params.plane_iterations, params.contact_distance * scale,
-                                         index_of(pa.sample.fracture))
+                                         index_of(pa.sample.fracture), w_b, w_a)
         fits = [(polished[i], *candidates[k][2:]) for i, k in enumerate(best_first)]
     # verify the best-touching fits first; stop at the first accepted
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)

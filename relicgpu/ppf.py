@@ -95,12 +95,17 @@ class PairTable:
     references: np.ndarray  # the points used as references
     centroid: np.ndarray  # of the points
     start: np.ndarray | None = None  # (K+2,) model side: pairs start[k]:start[k+1] have key k
+    weight: np.ndarray | None = None  # (M,) float32: w[ref] * w[other] of per-point weights; None: all 1
 
 
 def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_step_deg: float = 12.0,
-               reference_stride: int = 1, sort: bool = True, max_distance: float | None = None) -> PairTable:
+               reference_stride: int = 1, sort: bool = True, max_distance: float | None = None,
+               weights: np.ndarray | None = None) -> PairTable:
     """Every pair (ref, other) with ref among every `reference_stride`-th point (and, with
-    max_distance, the other point in a distance bin that starts within max_distance)."""
+    max_distance, the other point in a distance bin that starts within max_distance).
+
+    points, normals : (N,3); weights : (N,) optional per-point weights (fracture likelihoods): a
+    pair weighs the product of its two points' (`PairTable.weight`)."""
     n = len(points)
     angle_step = np.radians(angle_step_deg)
     angle_bins = int(np.ceil(np.pi / angle_step)) + 1
@@ -116,23 +121,26 @@ def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_
     if max_distance is not None:
         # a small contact's pairs are short; long pairs only add chance agreements elsewhere
         other &= key // angle_bins ** 3 <= max_distance / dist_step
-    ref = np.nonzero(other)[0].astype(np.int32)
+    ref, partner = (i.astype(np.int32) for i in np.nonzero(other))
     key, alpha = key[other], alpha[other]
+    weight = None if weights is None else (weights[refs][ref] * weights[partner]).astype(np.float32)
     start = None
     if sort:
         order = np.argsort(key, kind="stable")
         key, ref, alpha = key[order], ref[order], alpha[order]
+        weight = None if weight is None else weight[order]
         start = np.searchsorted(key, np.arange((int(key[-1]) if len(key) else -1) + 3))
     centroid = points.mean(axis=0) if n else np.zeros(3)
-    return PairTable(frames, key, ref, alpha, n, refs, centroid, start)
+    return PairTable(frames, key, ref, alpha, n, refs, centroid, start, weight)
 
 
 def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alpha_bins: int = 30, keep: int = 24,
-               bucket_cap: int = 32, cluster_angle_deg: float = 12.0) -> list[tuple[np.ndarray, int]]:
+               bucket_cap: int = 32, cluster_angle_deg: float = 12.0) -> list[tuple[np.ndarray, float]]:
     """Poses carrying the scene's points onto the model's, from Drost's votes: the best cell of
     each scene reference gives a pose; up to `keep` of them, most supported first, with their
     support (the votes of all poses within cluster_distance / cluster_angle_deg of them).
-    The model table must be sorted (its `start`); it has every point as a reference."""
+    The model table must be sorted (its `start`); it has every point as a reference. Where the
+    tables carry pair weights a vote weighs the model pair's times the scene pair's."""
     na, refs = model.n_points, scene.references
     if na < 3 or scene.n_points < 3 or len(model.key) == 0 or len(scene.key) == 0:
         return []
@@ -154,7 +162,8 @@ def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alph
     alpha = model.alpha[match] - np.repeat(scene.alpha, counts)
     abin = np.floor((alpha + np.float32(np.pi)) * np.float32(alpha_bins / (2 * np.pi))).astype(np.int64) % alpha_bins
     cell = (np.repeat(scene.ref, counts).astype(np.int64) * na + model.ref[match]) * alpha_bins + abin
-    votes = np.bincount(cell, minlength=len(refs) * na * alpha_bins).reshape(len(refs), na * alpha_bins)
+    votes = np.bincount(cell, _vote_weights(model, scene, match, counts),
+                        minlength=len(refs) * na * alpha_bins).reshape(len(refs), na * alpha_bins)
 
     best = votes.argmax(axis=1)
     best_votes = votes[np.arange(len(refs)), best]
@@ -169,7 +178,7 @@ def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alph
     # the best-scored, skipping those like one already kept.
     like = _similar(poses, scene.centroid, cluster_distance, cluster_angle_deg)
     support = like.astype(np.float64) @ best_votes
-    out: list[tuple[np.ndarray, int]] = []
+    out: list[tuple[np.ndarray, float]] = []
     taken = np.zeros(len(refs), bool)
     for k in np.argsort(-support, kind="stable"):
         if len(out) >= keep or support[k] < 3:
@@ -177,8 +186,21 @@ def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alph
         if taken[k]:
             continue
         taken |= like[k]
-        out.append((poses[k], int(support[k])))
+        out.append((poses[k], float(support[k])))
     return out
+
+
+def _vote_weights(model: PairTable, scene: PairTable, match: np.ndarray, counts: np.ndarray) -> np.ndarray | None:
+    """(V,) weight of each vote (model pair `match`, scene pairs repeated `counts` times): the
+    product of the two pairs' weights; None where neither table is weighted (every vote 1)."""
+    if model.weight is None and scene.weight is None:
+        return None
+    w = np.ones(len(match))
+    if model.weight is not None:
+        w *= model.weight[match]
+    if scene.weight is not None:
+        w *= np.repeat(scene.weight, counts)
+    return w
 
 
 def _similar(poses: np.ndarray, centre: np.ndarray, distance: float, angle_deg: float) -> np.ndarray:
@@ -193,7 +215,7 @@ def _similar(poses: np.ndarray, centre: np.ndarray, distance: float, angle_deg: 
 
 def ppf_poses(a_points: np.ndarray, a_normals: np.ndarray, b_points: np.ndarray, b_normals: np.ndarray,
               dist_step: float, angle_step_deg: float = 12.0, alpha_bins: int = 30, reference_stride: int = 3,
-              keep: int = 24, bucket_cap: int = 32) -> list[tuple[np.ndarray, int]]:
+              keep: int = 24, bucket_cap: int = 32) -> list[tuple[np.ndarray, float]]:
     """Poses carrying b onto a where b's surface (normals as given, i.e. already flipped for a
     mating surface) lies on a's; up to `keep`, most votes first, with their vote counts."""
     if len(a_points) < 3 or len(b_points) < 3:

@@ -132,13 +132,7 @@ def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: floa
 
     smooth_edges = topo.edge_faces[angle < params.crease_angle_deg]
     rough = face_roughness(normals, areas, smooth_edges, params.roughness_rings)
-    if params.segmentation == "regions":
-        from .segment_cues import cue_labels  # segment_cues builds on this module
-        region, region_prob = cue_labels(v, f, normals, areas, topo, angle, params)
-    elif params.segmentation == "roughness":
-        region, region_prob = _roughness_labels(rough, areas, topo, angle, params)
-    else:
-        raise ValueError(f"unknown segmentation {params.segmentation!r}")
+    region, region_prob = _labels(params.segmentation, v, f, normals, areas, topo, angle, rough, params)
     region_is_fracture = region_prob > 0.5
     e0, e1 = topo.edge_faces[:, 0], topo.edge_faces[:, 1]
     # Neighbouring fracture regions form one fracture patch (one set of contours).
@@ -148,6 +142,31 @@ def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: floa
     patch_is_fracture = np.zeros(int(patch.max()) + 1, bool)
     patch_is_fracture[patch[fracture]] = True
     return Segmentation(patch, patch_is_fracture, region, rough, region_prob[region], angle, normals, areas, topo)
+
+
+def _labels(method: str, v, f, normals, areas, topo, angle, rough, params):
+    """Regions (F,) int and their fracture likelihood (R,) by `Params.segmentation`'s method."""
+    if method == "regions":
+        from .segment_cues import cue_labels  # segment_cues builds on this module
+        return cue_labels(v, f, normals, areas, topo, angle, params)
+    if method == "roughness":
+        return _roughness_labels(rough, areas, topo, angle, params)
+    if method == "union":
+        return _union_labels(*(_labels(m, v, f, normals, areas, topo, angle, rough, params)
+                               for m in ("roughness", "regions")), topo.edge_faces)
+    raise ValueError(f"unknown segmentation {method!r}")
+
+
+def _union_labels(first: tuple, second: tuple, edge_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two segmentations' (regions (F,), likelihoods (R,)) overlaid: regions are the connected
+    pieces where both agree, a piece's likelihood the larger of its two (a face either method
+    calls fracture is a candidate; matching weighs it by its likelihood, verification decides)."""
+    (r1, p1), (r2, p2) = first, second
+    same = (r1[edge_faces[:, 0]] == r1[edge_faces[:, 1]]) & (r2[edge_faces[:, 0]] == r2[edge_faces[:, 1]])
+    region = _components(len(r1), edge_faces[same])
+    prob = np.zeros(int(region.max()) + 1)
+    prob[region] = np.maximum(p1[r1], p2[r2])
+    return region, prob
 
 
 def _roughness_labels(rough, areas, topo, angle, params):

@@ -205,6 +205,8 @@ def _pair_medians(region, topo, values):
     """(P, 2) neighbouring region pairs (low id first) and the (P,) median of `values` over their shared edges."""
     ra, rb = region[topo.edge_faces[:, 0]], region[topo.edge_faces[:, 1]]
     cross = ra != rb
+    if not cross.any():  # one region (a closed surface without creases): no pairs
+        return np.zeros((0, 2), np.int64), np.zeros(0)
     lo, hi, val = np.minimum(ra, rb)[cross], np.maximum(ra, rb)[cross], values[cross]
     order = np.lexsort((val, hi, lo))
     lo, hi, val = lo[order], hi[order], val[order]

@@ -6,7 +6,7 @@ slab; --synth-noise), relicgpu.corpus families (where that module is present) an
 ../shared/realdata Blender sets (corpus.realdata). Families marked * were held out when the
 "regions" thresholds were fitted; "overall" is the mean over the corpus and real rows. Usage:
 
-    .venv/bin/python scripts/bench_segment.py [--seeds 3] [--only voronoi,vessel] [--methods roughness,regions]
+    .venv/bin/python scripts/bench_segment.py [--seeds 3] [--only voronoi,vessel] [--methods roughness,regions,union]
 
 Seeds alternate 2 and 4 pieces (synth: 2 and 5). Target: recall >= 0.9 and precision >= 0.8 on every row.
 """
@@ -45,7 +45,7 @@ def main():
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--synth-noise", default="0.0005,0.002")
     ap.add_argument("--only", default="")
-    ap.add_argument("--methods", default="roughness,regions")
+    ap.add_argument("--methods", default="roughness,regions,union")
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args()
     only = [x for x in a.only.split(",") if x]

@@ -83,3 +83,32 @@ def test_every_backend_gives_the_same_transform(slab_pair, device_backend):
     moved = b.vertices @ result.transform[:3, :3].T + result.transform[:3, 3]
     ref_moved = b.vertices @ reference.transform[:3, :3].T + reference.transform[:3, 3]
     assert np.sqrt(((moved - ref_moved) ** 2).sum(1).mean()) < 0.001 * size
+
+
+def test_fracture_sample_is_weighted_by_the_fracture_likelihood():
+    from relicgpu.pipeline import prepare
+    r = synth.generate("slab", pieces=2, seed=1, faces=2000, noise=0.0005)
+    p = prepare(r.fragments[0], backend="numpy")
+    w = p.sample.fracture_weight
+    assert w.shape == (len(p.sample.fracture),)
+    assert np.all((w >= 0.2) & (w <= 1.0))
+    # the points lie on the true fracture faces' vertices
+    on_truth = np.zeros(len(r.fragments[0].vertices), bool)
+    on_truth[r.fragments[0].faces[r.fracture_faces[0]].ravel()] = True
+    index = {tuple(v): i for i, v in enumerate(r.fragments[0].vertices)}
+    true_point = on_truth[[index[tuple(x)] for x in p.sample.fracture]]
+    assert true_point.mean() > 0.8
+
+
+def test_a_fragment_without_fracture_is_sampled_whole_with_uniform_weights():
+    """Segmentation finds no fracture on a smooth sphere: the fracture sample is the whole surface."""
+    import trimesh
+    from relicgpu.io import Fragment
+    from relicgpu.pipeline import prepare
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    frag = Fragment("sphere", np.asarray(sphere.vertices, np.float64), np.asarray(sphere.faces, np.int64))
+    p = prepare(frag, backend="numpy")
+    assert not p.fracture_faces.any()
+    assert np.all(p.sample.fracture_weight == 1.0)
+    spread = np.ptp(p.sample.fracture, axis=0)
+    assert np.all(spread > 1.9)  # both sides of the unit sphere

@@ -4,7 +4,7 @@ import pytest
 
 from relicgpu.backends import get_backend
 from relicgpu.icp import apply, axis_rotation, batched_icp, rotation_angle_deg
-from relicgpu.ppf import smoothed_normals, ppf_poses
+from relicgpu.ppf import pair_table, ppf_poses, smoothed_normals, vote_poses
 
 
 def _rough_sheet(rng, n=900, size=1.0):
@@ -111,3 +111,62 @@ def test_screen_trim_keeps_a_start_on_a_seventh_of_the_source_that_the_fit_trim_
         return np.sqrt(np.mean(np.sum((apply(pose[0], source) - source_true)[~bend] ** 2, axis=1)))
     assert contact_error(p.screen_trim) < 0.06
     assert contact_error(p.icp_trim) > 0.2
+
+
+def _shared_third(seed):
+    """A rough sheet's left two thirds (a) and right two thirds (b, moved by `truth`, normals
+    flipped as a mating surface's): they share the middle third."""
+    rng = np.random.default_rng(seed)
+    pts, nrm = _rough_sheet(rng)
+    a, b = pts[:, 0] < 1 / 6, pts[:, 0] > -1 / 6
+    truth = _random_pose(rng)
+    inv = np.linalg.inv(truth)
+    return pts[a], nrm[a], apply(inv, pts[b]), nrm[b] @ inv[:3, :3].T, truth, pts[b]
+
+
+def test_ppf_votes_with_unit_weights_are_the_unweighted_votes():
+    a_pts, a_nrm, b_pts, b_nrm, _, _ = _shared_third(0)
+    plain = vote_poses(pair_table(a_pts, a_nrm, 0.03), pair_table(b_pts, b_nrm, 0.03, reference_stride=3, sort=False),
+                       0.06, keep=5)
+    ones_a, ones_b = np.ones(len(a_pts)), np.ones(len(b_pts))
+    weighted = vote_poses(pair_table(a_pts, a_nrm, 0.03, weights=ones_a),
+                          pair_table(b_pts, b_nrm, 0.03, reference_stride=3, sort=False, weights=ones_b), 0.06, keep=5)
+    assert len(plain) == len(weighted)
+    for (p, v), (q, w) in zip(plain, weighted):
+        assert np.allclose(p, q) and v == pytest.approx(w)
+
+
+def test_ppf_vote_weights_put_the_likely_fracture_first():
+    """Points weighted by a fracture likelihood: the shared third likely, the rest of each side
+    unlikely (1e-3): the best-supported pose is the true one."""
+    a_pts, a_nrm, b_pts, b_nrm, truth, b_true = _shared_third(1)
+    wa = np.where(np.abs(a_pts[:, 0]) < 1 / 6, 1.0, 1e-3)
+    wb = np.where(np.abs(b_true[:, 0]) < 1 / 6, 1.0, 1e-3)
+    model = pair_table(a_pts, a_nrm, 0.03, weights=wa)
+    assert model.weight.shape == model.key.shape
+    scene = pair_table(b_pts, b_nrm, 0.03, reference_stride=3, sort=False, weights=wb)
+    pose, _ = vote_poses(model, scene, 0.06, keep=3)[0]
+    assert rotation_angle_deg(pose[:3, :3] @ truth[:3, :3].T) < 8.0
+
+
+def test_weighted_icp_leaves_out_points_of_no_weight():
+    """The partial overlap of the trim test: the median rule is dragged off by the bent part,
+    unless the bent part's points weigh nothing; unit weights change nothing."""
+    rng = np.random.default_rng(4)
+    pts, _ = _rough_sheet(rng, n=2000, size=1.0)
+    target = pts[pts[:, 0] < -0.1]
+    source_true = pts[pts[:, 0] > -0.35].copy()
+    bend = source_true[:, 0] > -0.1
+    source_true[bend, 2] += 1.5 * (source_true[bend, 0] + 0.1)
+    start = np.eye(4)
+    start[:3, :3] = axis_rotation(np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2]), np.radians(3))[:3, :3]
+    start[:3, 3] = [0.02, -0.01, 0.015]
+    source = apply(np.linalg.inv(start), source_true)
+    be = get_backend("numpy")
+    plain, share = batched_icp(source, target, np.eye(4)[None], be, 40, 0.3, 0.01, trim=0.5)
+    ones, share_ones = batched_icp(source, target, np.eye(4)[None], be, 40, 0.3, 0.01, trim=0.5,
+                                   weights=np.ones(len(source)), target_weights=np.ones(len(target)))
+    assert np.allclose(plain, ones) and np.allclose(share, share_ones)
+    weighted, _ = batched_icp(source, target, np.eye(4)[None], be, 40, 0.3, 0.01, trim=0.5,
+                              weights=np.where(bend, 0.0, 1.0))
+    assert np.linalg.norm(apply(weighted[0], source) - source_true, axis=1).max() < 0.005

@@ -98,3 +98,14 @@ def test_unknown_segmentation_is_refused():
     r = synth.generate("slab", pieces=2, seed=1, faces=1000, noise=0.0005)
     with pytest.raises(ValueError):
         segment(r.fragments[0].vertices, r.fragments[0].faces, Params(segmentation="otsu"), 1.0, ref)
+
+
+def test_union_segmentation_takes_the_larger_likelihood_of_both_methods():
+    r = synth.generate("vase", pieces=2, seed=2, faces=2000, noise=0.0005)
+    frag = r.fragments[0]
+    segs = {m: segment(frag.vertices, frag.faces, Params(segmentation=m), frag.size, ref)
+            for m in ("roughness", "regions", "union")}
+    union = segs["union"]
+    both = np.maximum(segs["roughness"].face_fracture_prob, segs["regions"].face_fracture_prob)
+    assert np.allclose(union.face_fracture_prob, both)
+    assert np.array_equal(union.fracture_faces, segs["roughness"].fracture_faces | segs["regions"].fracture_faces)

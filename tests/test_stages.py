@@ -29,8 +29,8 @@ def test_box_cut_by_plane_has_right_angles_and_six_flat_regions():
     # every edge is either flat (0) or a box edge (90 degrees)
     assert np.all((angle < 1e-6) | (np.abs(angle - 90) < 1e-6))
     assert (np.abs(angle - 90) < 1e-6).sum() > 0
-    seg = segment(v, f, Params(min_region_faces=2), scale=1.0, backend=ref)
-    # a box cut by a plane is a box: six flat faces, each one region, none of them rough
+    seg = segment(v, f, Params(min_region_faces=2, segmentation="roughness"), scale=1.0, backend=ref)
+    # a box cut by a plane is a box: six flat faces, each one region, none of them rough (roughness alone)
     assert len(seg.region_is_fracture) == 6
     assert not seg.region_is_fracture.any()
     for r in range(6):
