@@ -243,6 +243,14 @@ class Grouping:
 
 # --- descriptors -------------------------------------------------------------
 
+
+def _grouping_params(params) -> "Params":
+    """The segmentation the grouping descriptors and the pair model were fitted on:
+    Otsu's roughness split. The matcher's default ("union") adds region cues; the pair
+    model has not been refitted on those labels, so grouping keeps its own."""
+    from .params import Params
+    return dataclasses.replace(params or Params(), segmentation="roughness")
+
 def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None) -> Descriptor:
     """The breakage-surviving descriptors of one fragment."""
     from .backends import resolve
@@ -255,7 +263,7 @@ def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None)
     if len(f) < 4:
         raise FragmentError(f"{fragment.source or fragment.name}: too few faces ({len(f)}) to describe")
     size = fragment.size
-    seg = segment(v, f, params or Params(), size, resolve("numpy"))
+    seg = segment(v, f, _grouping_params(params), size, resolve("numpy"))
     frac = seg.fracture_faces
     areas, fn = seg.areas, seg.normals
     total = float(areas.sum())
@@ -730,7 +738,7 @@ def point_features(fragment: Fragment, ref_length: float, n_points: int = CLASSI
 
     rng = rng or np.random.default_rng(0)
     v, f = np.asarray(fragment.vertices, np.float64), np.asarray(fragment.faces, np.int64)
-    seg = segment(v, f, params or Params(), fragment.size, resolve("numpy"))
+    seg = segment(v, f, _grouping_params(params), fragment.size, resolve("numpy"))
     return np.stack([_sample_points(v, f, seg, ref_length, n_points, rng) for _ in range(copies)])
 
 
