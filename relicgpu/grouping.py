@@ -251,6 +251,7 @@ def _grouping_params(params) -> "Params":
     from .params import Params
     return dataclasses.replace(params or Params(), segmentation="roughness")
 
+
 def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None) -> Descriptor:
     """The breakage-surviving descriptors of one fragment."""
     from .backends import resolve
