@@ -26,6 +26,7 @@ CASES = [
     ("bench_fusion.py", "--pairs 2 --skip-full --out {tmp}/fusion --cache-dir {tmp}/cache", None),
     ("bench_group.py", "--seeds 0 --train-seeds 1 --no-supervised --cache ''", None),
     ("bench_mosaic.py", "--pairs 1 --json {tmp}/mosaic.json", "mosaic.json"),
+    ("bench_clouds.py", "--pairs 1 --first 2 --modes normals,open --json {tmp}/clouds.json", "clouds.json"),
     ("bench_pointcloud.py", "--points 20000 --source slab --json {tmp}/pc.json", "pc.json"),
     ("bench_segment.py", "--seeds 1 --only synth", None),
     ("show_synth.py", "--shape slab --pieces 2 -o {tmp}/synth.png", "synth.png"),
