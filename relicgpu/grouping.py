@@ -246,8 +246,8 @@ class Grouping:
 
 def _grouping_params(params) -> "Params":
     """The segmentation the grouping descriptors and the pair model were fitted on:
-    Otsu's roughness split. The matcher's default ("union") adds region cues; the pair
-    model has not been refitted on those labels, so grouping keeps its own."""
+    Otsu's roughness split, whatever `Params.segmentation` the matcher is given ("union"
+    and "regions" add region cues; the pair model has not been refitted on those labels)."""
     from .params import Params
     return dataclasses.replace(params or Params(), segmentation="roughness")
 

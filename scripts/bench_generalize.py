@@ -130,7 +130,7 @@ def run(args) -> dict:
                 [] if args.realdata == "none" else args.realdata.split(","))
     faces = args.faces or preset["faces"]
     multi_faces = args.multi_faces or preset["multi_faces"]
-    params = Params()
+    params = Params(segmentation=args.segmentation) if args.segmentation else Params()
     backend = resolve(args.backend)
     plan = [(fam, seed, 2) for fam in families for seed in seeds]
     plan += [(fam, seed, p) for fam in families for seed in seeds for p in pieces]
@@ -237,6 +237,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="one seed, small pieces, no realdata assembly")
     ap.add_argument("--realdata-assemble", action=argparse.BooleanOptionalAction, default=None,
                     help="assemble the 20-piece realdata sets (default: not in --quick)")
+    ap.add_argument("--segmentation", choices=["roughness", "regions", "union"],
+                    help="Params.segmentation for every case (default: Params' own)")
     ap.add_argument("--dry", action="store_true", help="build the cases and report their labels only")
     ap.add_argument("--json", help="write the rows and every case here")
     args = ap.parse_args(argv)
