@@ -976,5 +976,6 @@ def cli_main(args) -> int:
     for line in grouped_lines("note", s.get("merge_notes", [])):
         log(line)
     log("  " + "  ".join(f"{k} {v:.2f} s" for k, v in result.timings.items()))
-    log(f"wrote {Path(args.out) / 'assembly.json'}, assembly.glb, merged.stl")
+    merged = not any("no merged.stl written" in n for n in s.get("merge_notes", []))
+    log(f"wrote {Path(args.out) / 'assembly.json'}, assembly.glb" + (", merged.stl" if merged else ""))
     return 0
