@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .io import is_cloud
 from .params import Params
 from .pointcloud import estimate_normals, even_subsample, fracture_likelihood, local_pca
 from .ppf import smoothed_normals
@@ -103,11 +104,6 @@ def point_spacing(points: np.ndarray) -> float:
         return 0.0
     d, _ = cKDTree(points).query(points, k=2)
     return float(np.median(d[:, 1]))
-
-
-def is_cloud(fragment) -> bool:
-    """Whether a fragment is given as points alone (no faces)."""
-    return len(fragment.faces) == 0
 
 
 def cloud_params(params: Params, fragments, scale: float) -> Params:

@@ -73,6 +73,11 @@ class Fragment:
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 
 
+def is_cloud(fragment: Fragment) -> bool:
+    """Whether a fragment is given as points alone (no faces): a scan that did not close."""
+    return len(fragment.faces) == 0
+
+
 def fragment_from_arrays(name: str, vertices, faces, source: str | None = None) -> Fragment:
     """Check and clean raw arrays into one Fragment (same rules as for files).
 

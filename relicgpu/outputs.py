@@ -33,18 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Fragment, FragmentError, atomic_open, load_original, progress_bar, unique_rows, write_stl
+from .io import Fragment, FragmentError, atomic_open, is_cloud, load_original, progress_bar, unique_rows, write_stl
 
 
 def colour(i: int) -> tuple[int, int, int, int]:
     """Well separated colours: golden-angle hues (RGBA, 0-255)."""
     r, g, b = colorsys.hsv_to_rgb((i * 0.618033988749895) % 1.0, 0.55, 0.9)
     return int(r * 255), int(g * 255), int(b * 255), 255
-
-
-def is_cloud(fragment: Fragment) -> bool:
-    """True for a fragment without faces (a point cloud)."""
-    return len(fragment.faces) == 0
 
 
 def full_resolution(fragment: Fragment) -> Fragment:

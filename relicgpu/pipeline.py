@@ -16,9 +16,9 @@ from . import features as features_mod
 from . import fusion as fusion_mod
 from .backends import resolve
 from .icp import same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
-from .io import Fragment
+from .io import Fragment, is_cloud
 from .params import Params
-from .cloudmatch import MIN_FACING, STRICT_SPREADS, cloud_params, cloud_sample, is_cloud
+from .cloudmatch import MIN_FACING, STRICT_SPREADS, cloud_params, cloud_sample
 from .pointcloud import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals, vote_poses
 from .segment import segment
@@ -113,18 +113,6 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, patches, timings)
 
 
-@dataclass(frozen=True)
-class WeightedSample(SurfaceSample):
-    """A mesh fragment's `SurfaceSample` with the fracture likelihood of each fracture point."""
-    fracture_weight: np.ndarray | None = None  # (P,) in (0, 1]: matching weighs each point by it
-
-
-def fracture_weight(sample: SurfaceSample) -> np.ndarray:
-    """(P,) weight of each fracture point of a sample: its `fracture_weight`, else 1 (clouds)."""
-    w = getattr(sample, "fracture_weight", None)
-    return np.ones(len(sample.fracture)) if w is None else w
-
-
 def sampling_prob(seg, params: Params) -> np.ndarray:
     """(F,) fracture likelihood the fracture sample is drawn with: `face_fracture_prob` where at
     least `sample_min_prob` (0 elsewhere); where that likelihood-weighted area is under
@@ -136,7 +124,7 @@ def sampling_prob(seg, params: Params) -> np.ndarray:
     return prob
 
 
-def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, plane_radius: float) -> WeightedSample:
+def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, plane_radius: float) -> SurfaceSample:
     """An even subsample of the vertices of faces of fracture likelihood prob (F,) > 0 (each
     weighted by the largest likelihood of its faces) and of all vertices (with normals)."""
     v, f = fragment.vertices, fragment.faces
@@ -152,8 +140,8 @@ def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, pl
     frac_vertices = frac_vertices[even_subsample(v[frac_vertices], n_points)]
     surf = even_subsample(v, 2 * n_points)
     plane_normals = smoothed_normals(v[frac_vertices], normals[frac_vertices], plane_radius)
-    return WeightedSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf],
-                          normals[surf], plane_normals, fracture_weight=vertex_weight[frac_vertices])
+    return SurfaceSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf],
+                         normals[surf], plane_normals, fracture_weight=vertex_weight[frac_vertices])
 
 
 def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
@@ -222,7 +210,7 @@ def ppf_points(sample: SurfaceSample, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def ppf_weights(sample: SurfaceSample, n: int) -> np.ndarray:
     """(n,) weights of `ppf_points`' points: fracture likelihoods over the largest (only ratios count)."""
-    w = fracture_weight(sample)[_ppf_index(sample, n)]
+    w = sample.weights()[_ppf_index(sample, n)]
     return w / (w.max() if len(w) else 1.0)
 
 
@@ -357,7 +345,7 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
             indexes[id(points)] = (points, be.nearest_index(points))
         return indexes[id(points)][1]
 
-    w_a, w_b = fracture_weight(pa.sample), fracture_weight(pb.sample)
+    w_a, w_b = pa.sample.weights(), pb.sample.weights()
     candidates = []
     if starts:
         # rank every start by a short batched ICP on a small sample, keep the best few. The screen

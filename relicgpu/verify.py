@@ -33,6 +33,11 @@ class SurfaceSample:
     surface: np.ndarray  # (Q,3) points of the whole surface
     normals: np.ndarray  # (Q,3) outward unit normals at `surface`
     fracture_plane_normals: np.ndarray | None = None  # (P,3) normals of local plane fits at `fracture`
+    fracture_weight: np.ndarray | None = None  # (P,) fracture likelihood in (0, 1] matching weighs by; None: 1
+
+    def weights(self) -> np.ndarray:
+        """(P,) weight of each fracture point: `fracture_weight`, or 1 where none was given (clouds)."""
+        return np.ones(len(self.fracture)) if self.fracture_weight is None else self.fracture_weight
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, areas: np.ndarray) -> np.ndarray:

@@ -60,19 +60,24 @@ def test_ppf_on_too_few_points_gives_nothing():
     assert ppf_poses(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), 0.1) == []
 
 
-def test_trimmed_icp_converges_on_a_partial_overlap_where_the_median_rule_is_dragged_off():
+def _bent_partial_overlap():
+    """A rough sheet as target and, 3 degrees off, a source of which a quarter lies on the
+    target and the rest runs beyond its edge, bent away at ~56 degrees (another fracture
+    facet). Returns source, target, the source's true points and the start pose."""
     rng = np.random.default_rng(4)
     pts, _ = _rough_sheet(rng, n=2000, size=1.0)
     target = pts[pts[:, 0] < -0.1]
-    source_true = pts[pts[:, 0] > -0.35]  # a quarter of the source on the target, the rest beyond its edge
-    # the source's free part bends away at ~56 degrees (another fracture facet)
+    source_true = pts[pts[:, 0] > -0.35].copy()
     bend = source_true[:, 0] > -0.1
-    source_true = source_true.copy()
     source_true[bend, 2] += 1.5 * (source_true[bend, 0] + 0.1)
     start = np.eye(4)
     start[:3, :3] = axis_rotation(np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2]), np.radians(3))[:3, :3]
     start[:3, 3] = [0.02, -0.01, 0.015]
-    source = apply(np.linalg.inv(start), source_true)
+    return apply(np.linalg.inv(start), source_true), target, source_true, start
+
+
+def test_trimmed_icp_converges_on_a_partial_overlap_where_the_median_rule_is_dragged_off():
+    source, target, source_true, start = _bent_partial_overlap()
     be = get_backend("numpy")
     trimmed, _ = batched_icp(source, target, np.eye(4)[None], be, 40, 0.3, 0.01, trim=0.2)
     median, _ = batched_icp(source, target, np.eye(4)[None], be, 40, 0.3, 0.01, trim=0.5)
@@ -152,16 +157,8 @@ def test_ppf_vote_weights_put_the_likely_fracture_first():
 def test_weighted_icp_leaves_out_points_of_no_weight():
     """The partial overlap of the trim test: the median rule is dragged off by the bent part,
     unless the bent part's points weigh nothing; unit weights change nothing."""
-    rng = np.random.default_rng(4)
-    pts, _ = _rough_sheet(rng, n=2000, size=1.0)
-    target = pts[pts[:, 0] < -0.1]
-    source_true = pts[pts[:, 0] > -0.35].copy()
-    bend = source_true[:, 0] > -0.1
-    source_true[bend, 2] += 1.5 * (source_true[bend, 0] + 0.1)
-    start = np.eye(4)
-    start[:3, :3] = axis_rotation(np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2]), np.radians(3))[:3, :3]
-    start[:3, 3] = [0.02, -0.01, 0.015]
-    source = apply(np.linalg.inv(start), source_true)
+    source, target, source_true, start = _bent_partial_overlap()
+    bend = source_true[:, 0] > -0.1  # the bent part (bending moves z only)
     be = get_backend("numpy")
     plain, share = batched_icp(source, target, np.eye(4)[None], be, 40, 0.3, 0.01, trim=0.5)
     ones, share_ones = batched_icp(source, target, np.eye(4)[None], be, 40, 0.3, 0.01, trim=0.5,

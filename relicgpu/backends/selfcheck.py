@@ -17,6 +17,7 @@ import functools
 
 import numpy as np
 
+from ..segment import mesh_topology
 from . import numpy as ref
 
 FAMILIES = ("normals", "curvature", "flags", "lcs", "nearest", "covariance", "mosaic")
@@ -49,14 +50,7 @@ def _mesh():
     f = np.concatenate([np.stack([i, i + n, i + 1], 1), np.stack([i + 1, i + n, i + n + 1], 1)])
     degenerate = np.array([[0, 1, 2], [0, 0, 1], [5, 5, 5]])  # collinear grid points, repeated vertices
     f = np.concatenate([f, degenerate]).astype(np.int32)
-    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    key = np.sort(edges, 1)
-    owner = np.tile(np.arange(len(f)), 3)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    key, owner = key[order], owner[order]
-    same = np.all(key[1:] == key[:-1], 1)
-    edge_faces = np.stack([owner[:-1][same], owner[1:][same]], 1).astype(np.int32)
-    return v, f, edge_faces
+    return v, f, mesh_topology(f).edge_faces
 
 
 @functools.lru_cache(maxsize=None)
