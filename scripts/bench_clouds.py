@@ -3,9 +3,11 @@
 
     python scripts/bench_clouds.py                                  # 10 pairs, with and without normals
     python scripts/bench_clouds.py --pairs 12 --first 12 --modes none   # held-out pairs 12-23
+    python scripts/bench_clouds.py --source corpus --pairs 12           # an independent generator
 
 Pair k is relicgpu.synth's two-piece {vase, torso, slab}[k % 3] of seed k // 3 (4,000 faces,
-scanner noise 0.05% of the size); each piece becomes --points points drawn from its surface
+scanner noise 0.05% of the size), or with --source corpus the clean two-piece object of
+relicgpu.corpus family {rough, smooth, voronoi, vessel}-clean [k % 4] of seed k // 4; each piece becomes --points points drawn from its surface
 (seed 100 k + i) with Gaussian noise of --noise times the piece's size, with the true normals
 (`normals`), with none (`none`), or as the mesh itself with three holes cut into its skin
 (`open`). A pair is right when `match_pair` accepts it with a rotation error under 2 degrees and
@@ -25,14 +27,24 @@ import numpy as np
 SHAPES = ("vase", "torso", "slab")
 
 
-def make_pair(k: int, mode: str, points: int, noise: float):
+CORPUS = ("rough-clean", "smooth-clean", "voronoi-clean", "vessel-clean")
+
+
+def pair_name(k: int, source: str) -> str:
+    return f"{SHAPES[k % 3]} seed {k // 3}" if source == "synth" else f"{CORPUS[k % 4]} seed {k // 4}"
+
+
+def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth"):
     """The two fragments of pair k in `mode` and the truth carrying b onto a."""
     import trimesh
 
-    from relicgpu import synth
+    from relicgpu import corpus, synth
     from relicgpu.pointcloud import cloud_fragment
 
-    r = synth.generate(SHAPES[k % 3], pieces=2, seed=k // 3, faces=4000, noise=0.0005, progress=False)
+    if source == "corpus":
+        r = corpus.generate(CORPUS[k % 4], pieces=2, seed=k // 4, faces=4000)
+    else:
+        r = synth.generate(SHAPES[k % 3], pieces=2, seed=k // 3, faces=4000, noise=0.0005, progress=False)
     truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
     frags = []
     for i, f in enumerate(r.fragments):
@@ -81,6 +93,7 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", default="normals,none", help="comma list of normals, none, open")
     ap.add_argument("--points", type=int, default=2500)
     ap.add_argument("--noise", type=float, default=0.0005)
+    ap.add_argument("--source", choices=["synth", "corpus"], default="synth")
     ap.add_argument("--backend", default="numpy")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
@@ -91,7 +104,7 @@ def main(argv=None) -> int:
     for mode in args.modes.split(","):
         right = wrong = 0
         for k in range(args.first, args.first + args.pairs):
-            a, b, truth = make_pair(k, mode, args.points, args.noise)
+            a, b, truth = make_pair(k, mode, args.points, args.noise, args.source)
             t0 = time.perf_counter()
             m = match_pair(a, b, backend=args.backend)
             rot, rms = score(a, b, truth, m.transform)
@@ -99,12 +112,12 @@ def main(argv=None) -> int:
             right += bool(m.accepted and good)
             wrong += bool(m.accepted and not good)
             tag = "right" if m.accepted and good else ("WRONG ACCEPTED" if m.accepted else "rejected")
-            rows.append({"mode": mode, "pair": k, "shape": SHAPES[k % 3], "seed": k // 3, "accepted": bool(m.accepted),
+            rows.append({"mode": mode, "pair": k, "case": pair_name(k, args.source), "accepted": bool(m.accepted),
                          "rotation_error_deg": rot, "rms": rms, "reason": m.reason, "seconds": time.perf_counter() - t0})
-            print(f"  {mode:7s} {SHAPES[k % 3]:5s} seed {k // 3}: rot {rot:7.2f} deg, rms {rms:.4f}, {tag} "
+            print(f"  {mode:7s} {pair_name(k, args.source)}: rot {rot:7.2f} deg, rms {rms:.4f}, {tag} "
                   f"({m.reason}) {rows[-1]['seconds']:.1f} s", file=sys.stderr, flush=True)
         summary[mode] = {"right": right, "wrong_accepted": wrong, "pairs": args.pairs}
-    print(f"\npairs {args.first}-{args.first + args.pairs - 1}, {args.points} points, noise {args.noise}, "
+    print(f"\n{args.source} pairs {args.first}-{args.first + args.pairs - 1}, {args.points} points, noise {args.noise}, "
           f"backend {args.backend}")
     for mode, s in summary.items():
         print(f"  {mode:8s} {s['right']}/{s['pairs']} right, {s['wrong_accepted']} accepted at a wrong pose")
