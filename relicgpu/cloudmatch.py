@@ -4,6 +4,11 @@ A sparse scan (a few thousand points a piece) of a thin board or an open surface
 into a solid, so it has no mesh to segment. Its fracture points are picked by the roughness of
 the normals around each point (`pointcloud.fracture_likelihood`), and the rest of the pipeline
 (point-pair votes, ICP, verification) runs on them as on a mesh's fracture sample.
+
+A clean break (a smooth or flat cut, as ceramics and Voronoi cell fracture make) is not rough,
+so roughness does not find it; but it is bounded by a crease. Where the roughness picks find no
+fit, each smooth region between creases (`crease_regions`) is tried as the fracture in turn, and
+the fit whose two regions touch over the largest share is kept (`REGION_OVERLAP`, `REGION_FACING`).
 """
 from __future__ import annotations
 
@@ -23,6 +28,82 @@ ROUGHNESS_NEIGHBOURS = 6
 # roughness, not ROUGH_SPREADS) is tried when the first finds no fit: a thin wall's narrow break
 # drowns in the skin points the first pick holds.
 STRICT_SPREADS = 2.0
+
+
+# Crease-bounded regions of a cloud: neighbours (CREASE_NEIGHBOURS nearest, nearer than
+# CREASE_REACH point spacings: not across a thin wall) join where their normals turn less than
+# CREASE_DEG; without scanned normals the estimated ones round a crease off, so points whose
+# neighbourhood strays from a plane more than CREASE_VARIATION times the cloud's median (the
+# noise floor of its own smooth surface) are left out as crease points instead.
+CREASE_NEIGHBOURS = 8
+CREASE_REACH = 4.0
+CREASE_DEG = 30.0
+CREASE_VARIATION = 6.0
+# Regions of at least this share of the points are tried as fracture, at most REGIONS of them
+# (largest first) a fragment.
+MIN_REGION_SHARE = 0.03
+REGIONS = 3
+# A fit between two regions is accepted when it passes `verify` with both regions touching over
+# at least REGION_OVERLAP of their points and REGION_FACING of the touching surfaces facing each
+# other. Fitted on the corpus's clean rough/smooth/voronoi/vessel pairs of seeds 0-2 with normals:
+# right region fits 0.21-0.61 overlap, facing 0.77-0.95; skin on skin (nested vessel walls, a
+# flat skin on a flat break) 0.13-0.34 overlap, facing 0.50-0.84.
+REGION_OVERLAP = 0.4
+REGION_FACING = 0.85
+REGION_TURNS = 36  # turns about the common normal tried for two regions put face to face
+# Two accepted region fits at different poses whose overlaps are within this ratio make the
+# pair ambiguous (a near-symmetric flat break: the outline of an ellipse fits at two turns).
+AMBIGUOUS_SHARE = 0.9
+
+
+def crease_regions(points: np.ndarray, normals: np.ndarray, given: bool) -> list[np.ndarray]:
+    """Smooth regions between the creases of a cloud, largest first, each at least
+    MIN_REGION_SHARE of the points: a list of index arrays into the (N, 3) points, whose
+    (N, 3) outward unit normals are scanned (`given`) or estimated."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    k = min(CREASE_NEIGHBOURS, n - 1)
+    if k < 1:
+        return []
+    d, nb = cKDTree(points).query(points, k=k + 1)
+    keep = np.ones(n, bool)
+    if not given:
+        values = local_pca(points, CREASE_NEIGHBOURS)[0]
+        variation = values[:, 0] / np.maximum(values.sum(1), 1e-300)
+        keep = variation < CREASE_VARIATION * max(float(np.median(variation)), 1e-12)
+    i, j = np.repeat(np.arange(n), k), nb[:, 1:].ravel()
+    near = d[:, 1:].ravel() < CREASE_REACH * float(np.median(d[:, 1]))
+    smooth = np.einsum("ij,ij->i", normals[i], normals[j]) > np.cos(np.radians(CREASE_DEG))
+    link = keep[i] & keep[j] & near & smooth
+    _, label = connected_components(coo_matrix((np.ones(link.sum()), (i[link], j[link])), shape=(n, n)),
+                                    directed=False)
+    sizes = np.bincount(label)
+    return [np.flatnonzero(label == r) for r in np.argsort(-sizes, kind="stable")
+            if sizes[r] >= MIN_REGION_SHARE * n]
+
+
+def region_samples(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
+                   scale: float) -> list[tuple[SurfaceSample, tuple[np.ndarray, np.ndarray]]]:
+    """Up to REGIONS samples of a cloud's (N, 3) points, each taking one `crease_regions` region
+    as its fracture (`cloud_sample`'s surface), with the region's centre and mean normal (a
+    patch: starts put two of them face to face)."""
+    points = np.asarray(points, np.float64)
+    normals = estimate_normals(points, given_normals)
+    surf = even_subsample(points, 2 * params.icp_points)
+    out = []
+    for region in crease_regions(points, normals, given_normals is not None)[:REGIONS]:
+        idx = region[even_subsample(points[region], params.icp_points)]
+        mean = normals[region].mean(0)
+        if np.linalg.norm(mean) == 0:
+            continue
+        plane_normals = smoothed_normals(points[idx], normals[idx], params.ppf_normal_radius * scale)
+        out.append((SurfaceSample(points[idx], np.zeros(len(idx), np.int64), normals[idx], points[surf],
+                                  normals[surf], plane_normals),
+                    (points[region].mean(0), mean / np.linalg.norm(mean))))
+    return out
 
 
 def cloud_likelihood(points: np.ndarray, given_normals: np.ndarray | None, spreads: float | None = None) -> np.ndarray:

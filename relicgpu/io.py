@@ -1,8 +1,8 @@
 """Loading fragments and writing outputs.
 
 `load_fragment(path)` reads STL, PLY, OBJ, OFF or GLB meshes through trimesh
-into a `Fragment`; point clouds go through `relicgpu.pointcloud` when that
-stage is installed. Every fault a user can cause becomes a `FragmentError` that
+into a `Fragment`; point clouds (.xyz, .pcd, .ply, .npy, and .las/.laz through
+laspy: `read_las`) go through `relicgpu.pointcloud` when that stage is installed. Every fault a user can cause becomes a `FragmentError` that
 names the file and the fault. Outputs are written atomically (a temporary file
 beside the target, then a rename), never over an input.
 """
@@ -23,10 +23,12 @@ from pathlib import Path
 import numpy as np
 
 MESH_SUFFIXES = {".stl", ".ply", ".obj", ".off", ".glb", ".gltf"}
-POINT_SUFFIXES = {".xyz", ".asc", ".txt", ".pcd", ".npy"}
-# LAS/LAZ lidar clouds: no reader here (laspy is not a dependency); named so the message says so
+# LAS/LAZ lidar clouds, read by laspy (`read_las`; LAZ through its lazrs backend)
 LIDAR_SUFFIXES = {".las", ".laz"}
+POINT_SUFFIXES = {".xyz", ".asc", ".txt", ".pcd", ".npy"} | LIDAR_SUFFIXES
 FRAGMENT_SUFFIXES = MESH_SUFFIXES | POINT_SUFFIXES
+# Extra dimensions of a LAS file read as normals, lower case (CloudCompare, PDAL and others)
+LAS_NORMAL_NAMES = (("normalx", "normaly", "normalz"), ("normal_x", "normal_y", "normal_z"), ("nx", "ny", "nz"))
 # A body of less than this fraction of the largest body's area in its file is a crumb: dropped.
 CRUMB_FRACTION = 0.01
 # Bodies of more faces than THIN_ABOVE are thinned at load to about THIN_TO faces (the working
@@ -139,7 +141,7 @@ def _checked_arrays(label: str, vertices, faces) -> tuple[np.ndarray, np.ndarray
 
 
 def split_bodies(name: str, label: str, source: str | None, parts, thin_above: int | None = None,
-                 progress: bool = True) -> tuple[list[Fragment], list[dict], list[str]]:
+                 progress: bool = True, describe: bool = True) -> tuple[list[Fragment], list[dict], list[str]]:
     """Split meshes into bodies, drop the crumbs and clean each body kept into a Fragment.
 
     A crumb is a body of less than CRUMB_FRACTION of the largest body's area (over all
@@ -147,7 +149,7 @@ def split_bodies(name: str, label: str, source: str | None, parts, thin_above: i
     when more than one is kept they are named ``name#1``, ``name#2``, ... and the crumbs
     take the numbers after them. A body of more than `thin_above` faces is thinned to
     about THIN_TO faces (`thin`, reporting on stderr unless `progress` is False) before
-    cleaning. Returns (fragments, skipped, notes) as
+    cleaning; `describe`: see `_clean_body`. Returns (fragments, skipped, notes) as
     `fragments_from_arrays`.
     """
     bodies = [(v, f[faces]) for v, f in parts for faces in _body_faces(v, f)]
@@ -160,7 +162,7 @@ def split_bodies(name: str, label: str, source: str | None, parts, thin_above: i
     ids = [name] if len(kept) == 1 else [f"{name}#{k}" for k in range(1, len(bodies) + 1)]
     file = Path(source).name if source else name
     frags = [_clean_body(ids[k], *bodies[i], label if len(kept) == 1 else f"{label} ({ids[k]})", source,
-                         thin_above, progress) for k, i in enumerate(kept)]
+                         thin_above, progress, describe) for k, i in enumerate(kept)]
     skipped = [{"file": file, "name": f"{name}#{k + 1}",
                 "reason": f"{label}: body {k + 1} of {len(bodies)} is a crumb ({len(bodies[i][1])} faces, "
                           f"{100 * areas[i] / largest:.2g}% of the largest body's area); dropped"}
@@ -173,9 +175,10 @@ def split_bodies(name: str, label: str, source: str | None, parts, thin_above: i
 
 
 def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str | None,
-                thin_above: int | None = None, progress: bool = True) -> Fragment:
+                thin_above: int | None = None, progress: bool = True, describe: bool = True) -> Fragment:
     """One body's faces -> a Fragment: thinned where it has more than `thin_above` faces;
-    degenerate and duplicate faces and unused vertices removed."""
+    degenerate and duplicate faces and unused vertices removed. `describe` False skips what
+    only makes a note (the watertightness test: 0.7 GiB and seconds on 6M faces)."""
     notes: list[str] = []
     thinned_from = 0
     if thin_above is not None and len(f) > thin_above:
@@ -200,7 +203,7 @@ def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str
         f = f[max(pieces, key=lambda p: _area(v, f[p]))]
         v, f = _used_vertices(v, f)
         notes.append(f"{label}: fell apart into {len(pieces)} bodies once degenerate faces were removed; kept the largest")
-    if not is_watertight(f):
+    if describe and not is_watertight(f):
         notes.append(f"{label}: the mesh is not watertight (open boundary); accepted, as scans often are")
     return Fragment(name, v, f.astype(np.int32), source, tuple(notes), thinned_from=thinned_from)
 
@@ -289,7 +292,8 @@ def unique_rows(a) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if n == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
     low = a.min(0)
-    spans = [int(x) for x in a.max(0) - low + 1]
+    # Python ints: max - min can overflow int64 (e.g. the bit patterns of floats, to weld by position)
+    spans = [int(hi) - int(lo) + 1 for hi, lo in zip(a.max(0), low)]
     if int(np.prod([float(x) for x in spans])) < 2 ** 62:  # mixed radix, first column most significant
         key = np.zeros(n, np.int64)
         for k in range(a.shape[1]):
@@ -437,9 +441,6 @@ def load_fragments(path, name: str | None = None, thin_above: int | None = THIN_
     if p.is_dir():
         raise FragmentError(f"{label}: is a directory, not a mesh file")
     suffix = p.suffix.lower()
-    if suffix in LIDAR_SUFFIXES:
-        raise FragmentError(f"{label}: LAS/LAZ point clouds are not supported here (no maintained reader such as "
-                            "laspy is installed); convert it to .ply, .pcd, .xyz or .npy")
     if suffix in POINT_SUFFIXES or (suffix == ".ply" and _ply_without_faces(p)):
         try:
             from . import pointcloud
@@ -456,6 +457,7 @@ def load_original(fragment: Fragment) -> Fragment:
     """A fragment as its file holds it: read again where it was thinned at load (same
     cleaning, no thinning, nothing on stderr), else the fragment itself (also when the file
     can no longer be read). A file that is that one body is not split into bodies again.
+    Its notes are not made again (they were said at load): no watertightness test.
     """
     if not fragment.thinned_from or not fragment.source:
         return fragment
@@ -463,10 +465,13 @@ def load_original(fragment: Fragment) -> Fragment:
     try:
         parts = [_checked_arrays(label, v, f) for v, f in _read_meshes(Path(label), label)]
         if len(parts) == 1 and len(parts[0][1]) == fragment.thinned_from:
-            return _clean_body(fragment.name, *parts[0], label, fragment.source)
+            (v, f), = parts
+            del parts
+            return _clean_body(fragment.name, v, f, label, fragment.source, describe=False)
         name = fragment.name
         for base in [name] + ([name.rsplit("#", 1)[0]] if "#" in name else []):
-            found = [f for f in split_bodies(base, label, label, parts, None, False)[0] if f.name == name]
+            found = [f for f in split_bodies(base, label, label, parts, None, False, describe=False)[0]
+                     if f.name == name]
             if found:
                 return found[0]
     except FragmentError:
@@ -474,26 +479,105 @@ def load_original(fragment: Fragment) -> Fragment:
     return fragment
 
 
+# Formats trimesh reads as one mesh: loaded without force="mesh", which on a 6M-face PLY costs
+# 0.8 GiB more at its peak (a scene is made and flattened again).
+SINGLE_MESH_SUFFIXES = {".ply", ".stl", ".off"}
+# After reading a mesh of more faces, trimesh's objects (reference cycles: a mesh and its
+# visuals) are collected at once rather than at the next automatic collection: 0.8 GiB on 6M faces.
+COLLECT_ABOVE = 200_000
+
+
 def _read_meshes(p: Path, label: str) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(vertices, faces) of each mesh of a file: one, or one per mesh of a GLB/glTF scene."""
+    """(vertices, faces) of each mesh of a file: one, or one per mesh of a GLB/glTF scene.
+
+    Returns
+    -------
+    list of (vertices (V, 3) float64, faces (F, 3) int)
+    """
+    import gc
+
     import trimesh
 
     suffix = p.suffix.lower()
     scene = suffix in (".glb", ".gltf")
+    force = {} if scene or suffix in SINGLE_MESH_SUFFIXES else {"force": "mesh"}
     try:
         with warnings.catch_warnings():  # e.g. an OBJ whose .mtl is missing: the geometry is what counts
             warnings.simplefilter("ignore")
-            loaded = trimesh.load(str(p), process=False, **({} if scene else {"force": "mesh"}))
+            loaded = trimesh.load(str(p), process=False, **force)
+            if isinstance(loaded, trimesh.Scene) and not scene:  # e.g. an STL of several solids: as force="mesh"
+                loaded = loaded.to_mesh()
             meshes = loaded.dump() if isinstance(loaded, trimesh.Scene) else [loaded]
     except Exception as exc:
         raise FragmentError(f"{label}: unreadable {suffix[1:].upper()} file ({type(exc).__name__}: {exc})") from None
     out = [(np.asarray(m.vertices, np.float64), np.asarray(m.faces))
            for m in meshes if len(getattr(m, "vertices", ())) and len(getattr(m, "faces", ()))]
+    faces = sum(len(f) for _, f in out)
+    del loaded
+    if faces > COLLECT_ABOVE:
+        meshes.clear()
+        gc.collect()
     if not out and not any(len(getattr(m, "vertices", ())) for m in meshes):
         raise FragmentError(f"{label}: unreadable or empty {suffix[1:].upper()} file (no vertices)")
     if not out:
         raise FragmentError(f"{label}: the mesh has no faces")
     return out
+
+
+def read_las(path, label: str | None = None) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
+    """Read a LAS or LAZ point cloud with laspy.
+
+    Parameters
+    ----------
+    path : path-like, a .las or .laz file (LAZ needs laspy's lazrs backend)
+    label : str, optional
+        Names the file in messages (default: the path).
+
+    Returns
+    -------
+    points : (N, 3) float64
+        x, y, z with the file's scales and offsets applied.
+    normals : (N, 3) float64 or None
+        From extra dimensions NormalX/NormalY/NormalZ, normal_x/... or nx/ny/nz (any case),
+        made unit length; None when the file has none, or some are zero or not finite
+        (a note says so).
+    notes : list of str
+
+    Raises
+    ------
+    FragmentError
+        laspy (or for LAZ a decompression backend) is missing, or the file cannot be read.
+    """
+    p = Path(path)
+    label = label or str(p)
+    kind = p.suffix[1:].upper() or "LAS"
+    try:
+        import laspy
+    except ImportError:
+        raise FragmentError(f"{label}: {kind} point clouds need laspy (pip install laspy lazrs); "
+                            "or convert it to .ply, .pcd, .xyz or .npy") from None
+    if kind == "LAZ" and not laspy.LazBackend.detect_available():
+        raise FragmentError(f"{label}: LAZ needs a decompression backend for laspy (pip install lazrs)")
+    try:
+        las = laspy.read(str(p))
+        points = np.column_stack([np.asarray(las.x, np.float64), np.asarray(las.y, np.float64),
+                                  np.asarray(las.z, np.float64)])
+        extra = {n.lower(): n for n in las.point_format.extra_dimension_names}
+        found = next((names for names in LAS_NORMAL_NAMES if all(n in extra for n in names)), None)
+        normals = None if found is None else np.column_stack([np.asarray(las[extra[n]], np.float64) for n in found])
+    except Exception as exc:  # laspy raises its own errors, and struct/ValueError/OSError on truncated files
+        raise FragmentError(f"{label}: unreadable {kind} file ({type(exc).__name__}: {exc})") from None
+    notes: list[str] = []
+    if normals is not None:
+        with np.errstate(invalid="ignore"):
+            length = np.linalg.norm(normals, axis=1)
+        if not (np.isfinite(length).all() and (length > 0).all()):
+            notes.append(f"{label}: normals ({', '.join(extra[n] for n in found)}) hold zero, NaN or infinite "
+                         "vectors; ignored")
+            normals = None
+        else:
+            normals = normals / length[:, None]
+    return points, normals, notes
 
 
 def _ply_without_faces(path: Path) -> bool:
@@ -579,8 +663,7 @@ def fragment_files(directory) -> list[Path]:
     d = Path(directory)
     if not d.is_dir():
         raise FragmentError(f"{d}: not a directory")
-    suffixes = FRAGMENT_SUFFIXES | LIDAR_SUFFIXES  # listed so that a LAS file is skipped with a reason
-    files = sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+    files = sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in FRAGMENT_SUFFIXES)
     if not files:
         raise FragmentError(f"{d}: no fragment files (STL, PLY, OBJ, OFF, GLB, or point clouds) found")
     return files
@@ -683,7 +766,7 @@ def write_stl(fh, parts, on_faces=None) -> int:
     Parameters
     ----------
     fh : binary file open for writing at its start
-    parts : iterable of (vertices (V, 3) float, faces (F, 3) int)
+    parts : iterable of (vertices (V, 3) float32 or float64, faces (F, 3) int)
         Consumed one at a time: a generator can free each mesh once written.
     on_faces : callable(int), optional
         Told how many faces each chunk wrote (a progress bar).
@@ -696,9 +779,8 @@ def write_stl(fh, parts, on_faces=None) -> int:
     fh.write(np.uint32(0).tobytes())
     total = 0
     for vertices, faces in parts:
-        v = np.asarray(vertices, np.float64)
         for start in range(0, len(faces), STL_CHUNK):
-            tri = v[np.asarray(faces[start:start + STL_CHUNK], np.int64)]  # (c, 3, 3)
+            tri = np.asarray(vertices[np.asarray(faces[start:start + STL_CHUNK], np.int64)], np.float64)  # (c, 3, 3)
             normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
             length = np.linalg.norm(normal, axis=1, keepdims=True)
             facets = np.zeros(len(tri), STL_FACET)

@@ -18,7 +18,10 @@ written a set of fragments at a time (`write_merged`, numpy facets, no trimesh).
 
 Only fragments whose placed bounding boxes overlap are united (`overlap_sets`); the
 others are written side by side, so merged.stl may hold several separate shells (a note
-says so). A lone closed mesh goes in as it is, without manifold3d (`is_closed`).
+says so). A lone mesh goes in without manifold3d: as it is when it bounds a solid
+(`is_closed`), else capped. Fragments whose union would take more memory than
+UNION_MEMORY (about 5.9M faces in all) are written at full resolution as separate,
+overlapping shells, and a note says that merged.stl is then not one watertight solid.
 """
 from __future__ import annotations
 
@@ -228,9 +231,9 @@ def cap_holes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.n
 
     f = np.asarray(faces, np.int64)
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    key = np.sort(directed, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    boundary = directed[counts[inverse.ravel()] == 1]  # (B, 2) as the faces run
+    _, inverse, counts = unique_rows(np.sort(directed, axis=1))
+    boundary = directed[counts[inverse] == 1]  # (B, 2) as the faces run
+    del directed, inverse
     if len(boundary) == 0:
         return vertices, faces, 0
     used, local = np.unique(boundary, return_inverse=True)
@@ -254,9 +257,27 @@ def _solid_or_surface(frag: Fragment, notes: list[str]):
     if solid is not None:
         notes.append(f"{frag.name}: open mesh; {holes} hole(s) capped to make it a closed solid in merged.stl")
         return solid, None
-    notes.append(f"{frag.name}: open mesh that could not be closed; merged.stl holds it as an open surface, "
-                 "so merged.stl is not watertight")
+    notes.append(_open_note(frag.name))
     return None, frag
+
+
+def _open_note(name: str) -> str:
+    return (f"{name}: open mesh that could not be closed; merged.stl holds it as an open surface, "
+            "so merged.stl is not watertight")
+
+
+def _shell(frag: Fragment, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh as a shell of its own, without manifold3d: as it is when it bounds a solid
+    (`is_closed`), else with its holes capped when that closes it, else as an open surface;
+    `notes` says which where it is not the first."""
+    if is_closed(frag.vertices, frag.faces):
+        return frag.vertices, frag.faces
+    v, f, holes = cap_holes(frag.vertices, frag.faces)
+    if holes and is_closed(v, f):
+        notes.append(f"{frag.name}: open mesh; {holes} hole(s) capped to make it a closed solid in merged.stl")
+        return v, f
+    notes.append(_open_note(frag.name))
+    return frag.vertices, frag.faces
 
 
 def is_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
@@ -313,15 +334,24 @@ def overlap_sets(boxes: np.ndarray) -> list[list[int]]:
 # Placed boxes are widened by this fraction of each fragment's size before the overlap test:
 # a thinned mesh's box lies a little inside its original's.
 BOX_MARGIN = 0.05
+# What a manifold3d union takes at its peak, per face of its inputs: 3.43 GiB over the rest for a
+# 6.1M-face piece and a 5k-face one (manifold3d 3.5; both solids, the result and the boolean's
+# temporaries). A set of fragments whose union would take more than UNION_MEMORY is not united:
+# its meshes are written at full resolution as separate shells, and a note says so (the rest of
+# `relicgpu assemble` stays under 0.5 GiB at that point: under 4 GiB in all).
+UNION_BYTES_PER_FACE = 600
+UNION_MEMORY = 3.4 * 2 ** 30
 
 
-def merged_parts(fragments: list[Fragment], poses: list[np.ndarray], notes: list[str]):
-    """The placed fragments as the meshes of a merged solid, one set of fragments at a time.
+def merged_parts(fragments: list[Fragment], poses: list[np.ndarray], notes: list[str], status=None):
+    """The placed fragments as the meshes of a merged solid, one mesh at a time.
 
     Fragments whose placed boxes overlap (`overlap_sets`) are united with manifold3d; a set
-    of one fragment that already bounds a solid (`is_closed`) is passed on as it is. Each
+    of one fragment is passed on as a shell of its own (`_shell`: as it is when it already
+    bounds a solid), and so is each fragment of a set whose union would take more memory
+    than UNION_MEMORY (a note says so: merged.stl is then not one watertight solid). Each
     original mesh is read (`full_resolution`) only when its set is reached and freed once
-    its set is yielded. Holes are capped, meshes that cannot be closed kept as open
+    passed on or made a solid. Holes are capped, meshes that cannot be closed kept as open
     surfaces, point clouds left out; `notes` gets a line for each such decision, and one
     when the solid holds several separate shells.
 
@@ -330,10 +360,12 @@ def merged_parts(fragments: list[Fragment], poses: list[np.ndarray], notes: list
     fragments : list of Fragment
     poses : list of (4, 4) arrays, file coordinates -> the group's frame
     notes : list of str, appended to
+    status : callable(str), optional
+        Told each long step as it starts (a progress bar's postfix).
 
     Yields
     ------
-    vertices : (V, 3) float64, placed
+    vertices : (V, 3) float, placed
     faces : (F, 3) int
     """
     meshes = []
@@ -349,31 +381,45 @@ def merged_parts(fragments: list[Fragment], poses: list[np.ndarray], notes: list
         notes.append(f"the merged solid holds {len(sets)} separate shells: fragments whose bounding boxes do not "
                      "overlap are written side by side, not united")
     for members in sets:
-        yield from _set_parts([meshes[i] for i in members], notes)
+        yield from _set_parts([meshes[i] for i in members], notes, status or (lambda text: None))
 
 
-def _set_parts(meshes: list, notes: list[str]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The placed meshes of one set of (Fragment, (4, 4) pose) whose boxes overlap: a lone
-    closed mesh as it is, else the union of those that close (`_solid_or_surface`) and the
-    open surfaces of the rest."""
+def _set_parts(meshes: list, notes: list[str], status):
+    """The placed meshes of one set of (Fragment, (4, 4) pose) whose boxes overlap: each as a
+    shell of its own (`_shell`) when it is alone or the union would not fit in UNION_MEMORY,
+    else the union of those that close (`_solid_or_surface`) and the open surfaces of the rest."""
     import manifold3d as m3d
 
-    parts, solids = [], []
+    faces = sum(full_faces(frag) for frag, _ in meshes)
+    united = len(meshes) > 1 and faces * UNION_BYTES_PER_FACE <= UNION_MEMORY
+    if len(meshes) > 1 and not united:
+        notes.append(f"{', '.join(f.name for f, _ in meshes)}: not united in merged.stl: their union at full "
+                     f"resolution ({faces:,} faces) would take about {faces * UNION_BYTES_PER_FACE / 2 ** 30:.2f} GiB, "
+                     f"more than the {UNION_MEMORY / 2 ** 30:.2f} GiB allowed; written as separate shells that "
+                     "overlap where they join, so merged.stl is not one watertight solid")
+    solids = []
     for frag, m in meshes:
+        status(f"reading {frag.name}")
         full = full_resolution(frag)
-        if len(meshes) == 1 and is_closed(full.vertices, full.faces):
-            return [(_placed(m, full.vertices), full.faces)]
+        if not united:
+            status(f"checking {frag.name}")
+            v, f = _shell(full, notes)
+            del full
+            yield _placed(m, v), f
+            continue
+        status(f"closing {frag.name} ({len(full.faces):,} faces)")
         solid, surface = _solid_or_surface(full, notes)
         del full
         if solid is not None:
             solids.append(solid.transform(m[:3, :]))
         else:
-            parts.append((_placed(m, surface.vertices), surface.faces))
+            yield _placed(m, surface.vertices), surface.faces
     if solids:
+        status(f"uniting {len(solids)} solids ({faces:,} faces)")
         out = (solids[0] if len(solids) == 1 else m3d.Manifold.batch_boolean(solids, m3d.OpType.Add)).to_mesh()
         del solids
-        parts.insert(0, (np.asarray(out.vert_properties[:, :3], np.float64), np.asarray(out.tri_verts, np.int64)))
-    return parts
+        # float32 as manifold3d holds them; uint32 faces (write_stl takes either)
+        yield out.vert_properties[:, :3], out.tri_verts
 
 
 def merged_solid(fragments: list[Fragment], poses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -397,7 +443,8 @@ def merged_solid(fragments: list[Fragment], poses: list[np.ndarray]) -> tuple[np
     if not parts:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), notes
     offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
-    return (np.vstack([v for v, _ in parts]), np.vstack([f + o for (_, f), o in zip(parts, offsets)]), notes)
+    return (np.vstack([np.asarray(v, np.float64) for v, _ in parts]),
+            np.vstack([np.asarray(f, np.int64) + o for (_, f), o in zip(parts, offsets)]), notes)
 
 
 def write_merged(path, fragments: list[Fragment], poses: list[np.ndarray], notes: list[str],
@@ -411,7 +458,8 @@ def write_merged(path, fragments: list[Fragment], poses: list[np.ndarray], notes
         return False
     total = sum(full_faces(f) for f in fragments if not is_cloud(f))
     with progress_bar(total, f"writing {Path(path).name}", progress, unit="faces") as bar, atomic_open(path) as fh:
-        write_stl(fh, merged_parts(fragments, poses, notes), bar.update)
+        # the bar counts faces written; its postfix names the step under way (reading, closing, uniting)
+        write_stl(fh, merged_parts(fragments, poses, notes, bar.set_postfix_str), bar.update)
     return True
 
 

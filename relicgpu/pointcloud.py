@@ -315,7 +315,8 @@ def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_
 # --- readers -------------------------------------------------------------
 
 def read_point_cloud(path) -> PointCloud:
-    """Read .xyz/.asc/.txt, .pcd, .ply (vertices only) or .npy into a checked PointCloud."""
+    """Read .xyz/.asc/.txt, .pcd, .ply (vertices only), .npy or .las/.laz (`io.read_las`) into a
+    checked PointCloud."""
     p = Path(path)
     label = str(p)
     if not p.exists():
@@ -331,9 +332,12 @@ def read_point_cloud(path) -> PointCloud:
         pts, nrm, notes = _read_ply(p, label)
     elif suffix == ".npy":
         pts, nrm, notes = _read_npy(p, label)
+    elif suffix in (".las", ".laz"):
+        from .io import read_las
+        pts, nrm, notes = read_las(p, label)
     else:
         raise FragmentError(f"{label}: unknown point-cloud format {suffix or '(no extension)'!r}; "
-                            "use .xyz, .asc, .txt, .pcd, .ply or .npy")
+                            "use .xyz, .asc, .txt, .pcd, .ply, .npy, .las or .laz")
     _check_points(pts, label)
     if nrm is not None and not np.isfinite(nrm).all():
         nrm = None

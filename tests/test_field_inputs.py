@@ -332,3 +332,102 @@ def test_repeated_notes_are_one_line_a_kind():
                        "all listed in the JSON output)"
     assert lines[1].startswith("note: f0.ply: the mesh is not watertight") and "and 44 more like it: f1.ply, f2.ply" in lines[1]
     assert lines[2].startswith("note: g0.ply: 2 bodies") and "and 2 more like it" in lines[2]
+
+
+# --- LAS/LAZ point clouds (issue 15, item 4) -----------------------------------------------------
+
+def _write_las(path, points, normals=None, names=("NormalX", "NormalY", "NormalZ")):
+    """A LAS (or, by its suffix, LAZ) file of points at 0.1 mm resolution, with normals as extra dimensions."""
+    laspy = pytest.importorskip("laspy")
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.offsets = points.min(0)
+    header.scales = [1e-4, 1e-4, 1e-4]
+    if normals is not None:
+        header.add_extra_dims([laspy.ExtraBytesParams(name=n, type=np.float32) for n in names])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points.T
+    if normals is not None:
+        for n, column in zip(names, normals.T):
+            las[n] = column.astype(np.float32)
+    las.write(str(path))
+    return path
+
+
+def _slab_half_points(n=2500):
+    r = synth.generate("slab", pieces=2, seed=0, faces=2000, progress=False)
+    mesh = r.fragments[0].to_trimesh()
+    points, face = trimesh.sample.sample_surface(mesh, n, seed=0)
+    return points * 100 + [5000.0, -300.0, 12.0], mesh.face_normals[face]  # millimetres, far from the origin
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_las_and_laz_clouds_read_their_points_and_normals(tmp_path, suffix):
+    from relicgpu.io import read_las
+    from relicgpu.pointcloud import read_point_cloud
+
+    laspy = pytest.importorskip("laspy")
+    if suffix == ".laz" and not laspy.LazBackend.detect_available():
+        pytest.skip("no LAZ backend (lazrs) installed")
+    points, normals = _slab_half_points()
+    path = _write_las(tmp_path / f"scan{suffix}", points, normals)
+    got, got_normals, notes = read_las(path)
+    assert got.dtype == np.float64 and got.shape == points.shape and notes == []
+    assert np.abs(got - points).max() <= 0.5e-4 + 1e-9  # to the file's resolution
+    assert np.abs(got_normals - normals).max() < 1e-6  # stored as float32, made unit again
+    cloud = read_point_cloud(path)
+    assert np.array_equal(cloud.points, got) and cloud.normals is not None
+    frag = load_fragment(path)
+    assert frag.file == f"scan{suffix}" and frag.name == "scan"
+    assert np.allclose(frag.vertices.mean(0), points.mean(0), atol=0.05 * np.ptp(points, 0).max())
+
+
+def test_las_normals_named_nx_ny_nz_or_absent(tmp_path):
+    from relicgpu.io import read_las
+
+    points, normals = _slab_half_points(500)
+    _, got, _ = read_las(_write_las(tmp_path / "n.las", points, normals, ("nx", "ny", "nz")))
+    assert np.abs(got - normals).max() < 1e-6
+    pts, got, notes = read_las(_write_las(tmp_path / "plain.las", points))
+    assert got is None and notes == [] and len(pts) == 500
+    bad = normals.copy()
+    bad[3] = 0
+    _, got, notes = read_las(_write_las(tmp_path / "zero.las", points, bad))
+    assert got is None and len(notes) == 1 and "zero.las" in notes[0] and "ignored" in notes[0]
+
+
+def test_a_corrupt_las_is_one_line_naming_it_and_a_batch_skips_it(tmp_path):
+    from relicgpu.io import FragmentError
+
+    pytest.importorskip("laspy")
+    points, normals = _slab_half_points()
+    good = _write_las(tmp_path / "good.las", points, normals)
+    data = good.read_bytes()
+    (tmp_path / "cut.las").write_bytes(data[:len(data) // 2])  # truncated: half its points missing
+    (tmp_path / "noise.las").write_bytes(b"LASF" + bytes(200))
+    for name in ("cut.las", "noise.las"):
+        with pytest.raises(FragmentError) as err:
+            load_fragment(tmp_path / name)
+        message = str(err.value)
+        assert "\n" not in message and message.startswith(str(tmp_path / name) + ": unreadable LAS file")
+    _box((30, 40, 50), (5000, 0, 0)).export(tmp_path / "box.ply")
+    batch = read_batch(tmp_path)
+    assert sorted(f.file for f in batch.fragments) == ["box.ply", "good.las"]
+    assert sorted(s["file"] for s in batch.skipped) == ["cut.las", "noise.las"]
+    assert all(s["reason"].startswith(str(tmp_path / s["file"])) for s in batch.skipped)
+
+
+def test_a_union_too_big_for_memory_is_written_as_separate_shells_and_says_so(monkeypatch):
+    from relicgpu import outputs
+
+    box = fragment_from_arrays_quiet("box", _box().vertices, _box().faces)
+    near = np.eye(4)
+    near[:3, 3] = [0.5, 0, 0]
+    monkeypatch.setattr(outputs, "UNION_MEMORY", 24 * outputs.UNION_BYTES_PER_FACE - 1)  # one face short
+    v, f, notes = outputs.merged_solid([box, box], [np.eye(4), near])
+    assert len(f) == 24 and trimesh.Trimesh(v, f, process=False).body_count == 2  # both whole, not united
+    assert len(notes) == 1 and notes[0].startswith("box, box: not united in merged.stl")
+    assert "24 faces" in notes[0] and "not one watertight solid" in notes[0]
+    monkeypatch.setattr(outputs, "UNION_MEMORY", 24 * outputs.UNION_BYTES_PER_FACE)  # fits: one solid
+    v, f, notes = outputs.merged_solid([box, box], [np.eye(4), near])
+    merged = trimesh.Trimesh(v, f, process=False)
+    assert notes == [] and merged.is_watertight and np.isclose(merged.volume, 1.5 * _box().volume)

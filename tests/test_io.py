@@ -117,3 +117,19 @@ def test_degenerate_faces_do_not_depend_on_units_or_origin():
     assert len(kept[0]) == len(sphere.faces)  # the three added faces dropped, every real one kept
     for f in kept[1:]:
         np.testing.assert_array_equal(f, kept[0])
+
+
+def test_unique_rows_on_spans_that_overflow_int64():
+    # rows spanning more than 2**63 (the bit patterns of floats, as is_closed welds positions) must
+    # not overflow into the one-key path: a box's 8 distinct corners were taken for 2
+    from relicgpu.io import unique_rows
+    from relicgpu.outputs import is_closed
+
+    box = trimesh.creation.box()
+    first, inverse, counts = unique_rows(np.ascontiguousarray(box.vertices).view(np.int64))
+    assert len(first) == 8 and (counts == 1).all()
+    rows = np.array([[np.iinfo(np.int64).min, 0], [np.iinfo(np.int64).max, 0], [np.iinfo(np.int64).min, 0]])
+    first, inverse, counts = unique_rows(rows)
+    assert inverse.tolist() == [0, 1, 0] and counts.tolist() == [2, 1]
+    assert is_closed(box.vertices, box.faces) and not is_closed(box.vertices, box.faces[1:])
+    assert not is_closed(box.vertices, box.faces[:, ::-1])  # inside out: negative volume

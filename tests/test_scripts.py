@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # (script, arguments; {tmp} is a fresh folder, and a file it names must exist afterwards)
 CASES = [
+    ("bench_bigmesh.py", "--faces 20000 --json {tmp}/big.json", "big.json"),
     ("bench_backends.py", "--quick --backends numpy,warp-cpu --sections normals,nn --repeats 1 --out {tmp}/bb",
      "bb/bench_backends.json"),
     ("bench_pair.py", "--pairs 1 --size-factor 0.15 --repeats 1 --json {tmp}/pair.json", "pair.json"),

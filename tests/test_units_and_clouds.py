@@ -165,3 +165,49 @@ def test_a_cloud_that_does_not_close_loads_as_points(tmp_path):
     assert any("matched on its points" in n for n in frag.notes)
     moved = frag.transformed(np.diag([1.0, -1.0, -1.0, 1.0]))
     assert isinstance(moved, CloudFragment) and np.allclose(moved.vertices[:, 2], -frag.vertices[:, 2])
+
+
+def test_crease_regions_split_a_cloud_at_its_creases_with_and_without_normals():
+    from relicgpu.cloudmatch import crease_regions
+    from relicgpu.pointcloud import estimate_normals
+
+    # a box's six faces (sides 1, 0.8, 0.6): six smooth regions between its creases
+    rng = np.random.default_rng(0)
+    half = np.array([0.5, 0.4, 0.3])
+    pts, normals = [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            p = rng.uniform(-half, half, size=(int(3000 * np.prod(np.delete(half, axis)) / 0.47), 3))
+            p[:, axis] = sign * half[axis]
+            n = np.zeros_like(p)
+            n[:, axis] = sign
+            pts.append(p)
+            normals.append(n)
+    truth = np.concatenate([np.full(len(p), k) for k, p in enumerate(pts)])
+    pts, normals = np.concatenate(pts), np.concatenate(normals)
+    for given in (normals, None):
+        regions = crease_regions(pts, estimate_normals(pts, given), given is not None)
+        assert len(regions) == 6
+        for region in regions:  # each region lies on one face, and holds most of it
+            labels = np.bincount(truth[region], minlength=6)
+            assert labels.max() == len(region)
+            assert len(region) > (0.9 if given is not None else 0.6) * np.sum(truth == labels.argmax())
+
+
+def test_a_clean_smooth_break_is_matched_on_its_crease_regions():
+    """A break with no roughness (a smooth cut of the independent corpus, not relicgpu.synth)."""
+    import trimesh
+
+    from relicgpu import corpus
+    from relicgpu.pointcloud import cloud_fragment
+
+    r = corpus.generate("smooth-clean", pieces=2, seed=0, faces=4000)
+    frags = []
+    for i, f in enumerate(r.fragments):
+        mesh = f.to_trimesh()
+        p, face = trimesh.sample.sample_surface(mesh, 2500, seed=100 + i)
+        p = p + np.random.default_rng(7 + i).normal(size=p.shape) * 0.0005 * f.size
+        frags.append(cloud_fragment(f.name, p, mesh.face_normals[face]))
+    result = match_pair(*frags, backend="numpy")
+    assert result.reason == "accepted (crease regions)"
+    _assert_right(result, frags[1], np.linalg.inv(r.poses[0]) @ r.poses[1])
