@@ -61,6 +61,11 @@ PENETRATION_BAND = 3.0
 # median 0.02 (measured over vases, torsos and slabs of 5 and 10 pieces).
 CLASH_THICKNESS = 0.01
 CLASH_MIN_VOLUME = 0.002
+# Recovery from a wrong match (`grow_forest`): rounds of leaving one implicated tree edge out,
+# the gain in summed score of used matches a new forest must bring, and the edges tried a round.
+RECOVERY_ROUNDS = 3
+RECOVERY_GAIN = 0.05
+MAX_SUSPECTS = 12
 
 # --- the result --------------------------------------------------------------
 
@@ -538,7 +543,7 @@ class Edge:
 
 def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale: float, backend,
                 solids: list | None = None) -> tuple[list, list[int], dict[tuple[int, int], str]]:
-    """Spanning forest of verified matches, best first.
+    """Spanning forest of verified matches, best first, that recovers from a wrong match.
 
     Each group keeps poses in its own frame. An edge between two groups merges them
     when (1) the verified edges between the two groups that agree with its placement
@@ -547,8 +552,91 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
     are closed solids (`solids`, manifold3d), else by `penetration` of the surface samples.
     An edge inside a group is used when it agrees with the placement the group already
     has (a closed loop), refused otherwise.
+
+    A wrong match scored above the right ones is used first, and the right ones that
+    contradict it (a loop far from identity, or a placement that interpenetrates) are then
+    refused. So when edges were refused, each used tree edge those refusals implicate
+    (`_suspects`) is in turn left out and the forest grown again; the forest whose used
+    edges weigh most (`_support`) is kept if it weighs more than the current one by
+    RECOVERY_GAIN, and that is repeated up to RECOVERY_ROUNDS times (one wrong match a round).
     Returns poses (4x4 or None), group label per fragment, and a note per edge.
     """
+    solids = solids or [None] * n
+    memo: dict = {}  # clash verdicts by relative placement: the regrown forests test the same ones
+    current = _grow(n, edges, samples, params, scale, backend, solids, memo)
+    dropped: dict[tuple[int, int], str] = {}
+    for _ in range(RECOVERY_ROUNDS):
+        base = _support(edges, current[2])
+        best = None
+        for s in _suspects(edges, current[1], current[2]):
+            kept = [e for e in edges if (e.a, e.b) != (s.a, s.b) and (e.a, e.b) not in dropped]
+            trial = _grow(n, kept, samples, params, scale, backend, solids, memo)
+            got = _support(kept, trial[2])
+            better = got[0] > base[0] or (got[0] == base[0] and got[1] > base[1] + RECOVERY_GAIN)
+            if better and (best is None or got > best[0]):
+                best = (got, s, trial)
+        if best is None:
+            break
+        got, s, current = best
+        dropped[(s.a, s.b)] = (f"refused: contradicted by the other matches (without it {got[0]} matches "
+                               f"agree, weighing {got[1]:.2f}; with it {base[0]}, weighing {base[1]:.2f})")
+    pose, group, notes = current
+    notes.update(dropped)
+    return pose, group, notes
+
+
+def _support(edges: list[Edge], notes: dict) -> tuple[int, float]:
+    """The count and summed score of the used edges: matches that agree with one another."""
+    used = [e.score for e in edges if notes.get((e.a, e.b), "").startswith("used")]
+    return len(used), float(sum(used))
+
+
+def _suspects(edges: list[Edge], group: list[int], notes: dict) -> list[Edge]:
+    """The used tree edges a refusal implicates, most implicated first (at most MAX_SUSPECTS):
+    for an edge refused inside one group, the tree path between its ends (a loop that does
+    not close); for one refused between groups (an interpenetration, or other matches that
+    disagree), every tree edge of the two groups it would have joined."""
+    tree = [e for e in edges if notes.get((e.a, e.b)) == "used: spanning tree"]
+    adjacent: dict[int, list[Edge]] = {}
+    for e in tree:
+        adjacent.setdefault(e.a, []).append(e)
+        adjacent.setdefault(e.b, []).append(e)
+    blame: dict[tuple[int, int], float] = {}
+    for r in edges:
+        if not notes.get((r.a, r.b), "").startswith("refused"):
+            continue
+        if group[r.a] == group[r.b]:
+            implicated = _tree_path(adjacent, r.a, r.b)
+        else:
+            implicated = [e for e in tree if group[e.a] in (group[r.a], group[r.b])]
+        for e in implicated:
+            blame[(e.a, e.b)] = blame.get((e.a, e.b), 0.0) + r.score
+    order = sorted(tree, key=lambda e: (-blame.get((e.a, e.b), 0.0), e.a, e.b))
+    return [e for e in order if (e.a, e.b) in blame][:MAX_SUSPECTS]
+
+
+def _tree_path(adjacent: dict[int, list[Edge]], start: int, goal: int) -> list[Edge]:
+    """The edges of the tree path from start to goal (empty where none)."""
+    back: dict[int, Edge | None] = {start: None}
+    todo = [start]
+    while todo and goal not in back:
+        node = todo.pop()
+        for e in adjacent.get(node, []):
+            other = e.b if e.a == node else e.a
+            if other not in back:
+                back[other] = e
+                todo.append(other)
+    path, node = [], goal
+    while back.get(node) is not None:
+        e = back[node]
+        path.append(e)
+        node = e.b if e.a == node else e.a
+    return path
+
+
+def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float, backend, solids: list,
+          memo: dict) -> tuple[list, list[int], dict[tuple[int, int], str]]:
+    """One greedy spanning forest of `edges` (see `grow_forest`)."""
     group = list(range(n))
     members = {i: [i] for i in range(n)}
     pose = [np.eye(4) for _ in range(n)]
@@ -581,8 +669,7 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
         if disagree > agree:
             notes[(e.a, e.b)] = "refused: other matches between the two groups disagree"
             continue
-        clash = _first_clash(members[ga], members[gb], pose, move, samples, params, scale, backend,
-                             solids or [None] * n)
+        clash = _first_clash(members[ga], members[gb], pose, move, samples, params, scale, backend, solids, memo)
         if clash is not None:
             p, q, what = clash
             notes[(e.a, e.b)] = f"refused: fragments {p} and {q} would interpenetrate ({what})"
@@ -596,8 +683,9 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
 
 
 def _first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Params, scale: float, backend,
-                 solids: list):
-    """The first pair (p in ga, q in gb) that interpenetrates after gb moves by `move`, with a note."""
+                 solids: list, memo: dict | None = None):
+    """The first pair (p in ga, q in gb) that interpenetrates after gb moves by `move`, with a note
+    (memo: verdicts kept by pair and relative placement, for forests grown again)."""
     depth = params.penetration_depth * scale
     boxes_a = {p: _bbox(_apply(pose[p], samples[p].surface)) for p in ga}
     for q in gb:
@@ -608,15 +696,28 @@ def _first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Para
             if np.any(box_q[0] > box_p[1] + depth) or np.any(box_p[0] > box_q[1] + depth):
                 continue
             rel = _inv(pose[p]) @ tq
-            if solids[p] is not None and solids[q] is not None:
-                share, thickness = overlap_volume(solids[p], solids[q], rel)
-                if share > CLASH_MIN_VOLUME and thickness > CLASH_THICKNESS * scale:
-                    return p, q, f"{100 * share:.1f}% of the smaller volume shared, {thickness / scale:.3f} thick"
+            key = (p, q, np.round(rel / [1, 1, 1, scale], 7).tobytes())
+            if memo is not None and key in memo:
+                if memo[key] is not None:
+                    return p, q, memo[key]
                 continue
-            pen = penetration(samples[p], samples[q], rel, backend, depth)
-            if pen > params.max_penetration:
-                return p, q, f"{100 * pen:.1f}% of surface points inside"
+            what = _clash(p, q, rel, samples, params, scale, backend, solids)
+            if memo is not None:
+                memo[key] = what
+            if what is not None:
+                return p, q, what
     return None
+
+
+def _clash(p: int, q: int, rel: np.ndarray, samples, params: Params, scale: float, backend, solids: list):
+    """Why fragments p and q (q moved by `rel` into p's frame) interpenetrate, or None."""
+    if solids[p] is not None and solids[q] is not None:
+        share, thickness = overlap_volume(solids[p], solids[q], rel)
+        if share > CLASH_MIN_VOLUME and thickness > CLASH_THICKNESS * scale:
+            return f"{100 * share:.1f}% of the smaller volume shared, {thickness / scale:.3f} thick"
+        return None
+    pen = penetration(samples[p], samples[q], rel, backend, params.penetration_depth * scale)
+    return f"{100 * pen:.1f}% of surface points inside" if pen > params.max_penetration else None
 
 
 def overlap_volume(a, b, transform: np.ndarray) -> tuple[float, float]:

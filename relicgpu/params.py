@@ -95,6 +95,15 @@ class Params:
     max_rmse: float = 0.0028         # RMS point-to-plane distance over the contact
     max_penetration: float = 0.06    # share of surface points deeper than penetration_depth inside the other
     penetration_depth: float = 0.015
+    # meshes (clouds: cloudmatch.MIN_FACING, no sunk-surface check): at least this share of the
+    # surfaces' touching points must face each other, and at most this share of either surface
+    # may sink deeper than penetration_depth into the other, contact zone included. Fitted on the
+    # fits match_pair verifies on the synth, rough and smooth families (scripts/bench_verify.py):
+    # right fits face 0.25-0.91 and sink at most 0.0085 (a coarse smooth one 0.011 in an
+    # assembly), wrong ones that pass the checks above mostly face under 0.015
+    # (docs/benchmarks.md, "Verification that rejects a wrong fit")
+    min_facing: float = 0.06
+    max_surface_penetration: float = 0.02
 
     def with_(self, **changes) -> "Params":
         return replace(self, **changes)

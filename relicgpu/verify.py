@@ -4,6 +4,12 @@ A fit is accepted only when the two fracture surfaces really touch over a real
 share of their area (overlap), closely (RMS residual over the contact), and
 neither fragment's surface dips into the other's solid (interpenetration, with
 the sign taken from the nearest vertex normal of the other fragment).
+
+Two more checks (issue 16 item 3) separate right fits from wrong ones on fractures of other
+generators, where a wrong fit lays a flat skin against a flat break, or skin against skin:
+touching surfaces must face each other (`facing_share`), and no surface may sink into the
+other's solid, the contact zone included (`surface_penetration`). `fit_cues` measures these and
+the other cues tried (scripts/bench_verify.py; docs/benchmarks.md has the figures).
 """
 from __future__ import annotations
 
@@ -51,7 +57,8 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.nda
 
 def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, contact: float,
            max_rmse: float, min_overlap: float, depth: float, max_penetration: float,
-           index_of=None, mutual: bool = False, min_facing: float = 0.0) -> Verification:
+           index_of=None, mutual: bool = False, min_facing: float = 0.0,
+           max_surface_penetration: float = 1.0) -> Verification:
     """Check b moved by `transform` against a (all lengths absolute).
 
     The overlap is the larger of the two fracture samples' shares in contact (a partial contact
@@ -65,7 +72,12 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
 
     min_facing: the least share of the surfaces' contact points whose outward normals face each
     other (`facing_share`); touching pieces meet face to face, a wrong fit puts one piece's skin
-    along the other's from behind or side by side (0: not checked)."""
+    along the other's from behind or side by side (0: not checked).
+
+    max_surface_penetration: the largest share of either surface sample deeper than `depth`
+    inside the other anywhere within 3 depths of it, the contact zone included
+    (`surface_penetration`; 1: not checked). `max_penetration` leaves the contact zone out, so
+    a wrong fit that sinks one fracture surface into the other's solid passes it."""
     if index_of is None:
         index_of = backend.nearest_index
     inv = np.linalg.inv(transform)
@@ -88,6 +100,7 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
     pen_a = _inside_share(apply(inv, a.surface), b, depth, contact, index_of)
     penetration = float(max(pen_a, pen_b))
     facing = facing_share(a, b, transform, contact, index_of) if min_facing > 0 else 1.0
+    sunk = surface_penetration(a, b, transform, depth, index_of) if max_surface_penetration < 1.0 else 0.0
 
     if overlap < min_overlap:
         return Verification(overlap, rmse, penetration, False, f"overlap {overlap:.2f} below {min_overlap:.2f}", facing)
@@ -98,6 +111,9 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
                             f"interpenetration {penetration:.3f} above {max_penetration:.3f}", facing)
     if facing < min_facing:
         return Verification(overlap, rmse, penetration, False, f"facing {facing:.2f} below {min_facing:.2f}", facing)
+    if sunk > max_surface_penetration:
+        return Verification(overlap, rmse, penetration, False,
+                            f"surfaces sunk into each other {sunk:.3f} above {max_surface_penetration:.3f}", facing)
     return Verification(overlap, rmse, penetration, True, "accepted", facing)
 
 
@@ -119,6 +135,19 @@ def _inside_share(points: np.ndarray, other: SurfaceSample, depth: float, contac
     return float(np.sum((signed < -depth) & near)) / len(points)
 
 
+def surface_penetration(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, depth: float, index_of) -> float:
+    """The larger share of either surface sample (b's moved by `transform`) lying deeper than
+    `depth` behind the nearest surface point of the other, by that point's outward normal,
+    counting only points within 3 depths of it (farther, the nearest normal says little)."""
+    def one_way(points, other):
+        idx, dist = index_of(other.surface).query(points)
+        idx = np.asarray(idx, np.int64)
+        signed = np.einsum("ij,ij->i", points - other.surface[idx], other.normals[idx])
+        return float(np.mean((signed < -depth) & (np.asarray(dist) < 3 * depth))) if len(points) else 0.0
+
+    return max(one_way(apply(transform, b.surface), a), one_way(apply(np.linalg.inv(transform), a.surface), b))
+
+
 def facing_share(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, contact: float, index_of) -> float:
     """Share of b's surface points (moved by `transform`) within `contact` of a's surface whose
     outward normal is opposed to that of the nearest point of a (cosine below -0.5); 1 where
@@ -129,3 +158,57 @@ def facing_share(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, cont
         return 1.0
     cos = np.einsum("ij,ij->i", (b.normals @ transform[:3, :3].T)[touching], a.normals[np.asarray(idx)[touching]])
     return float(np.mean(cos < -0.5))
+
+
+def surface_weights(sample: SurfaceSample, reach: float, index_of) -> np.ndarray:
+    """(Q,) fracture likelihood at each of the sample's surface points: that of the nearest
+    fracture point where one lies within `reach`, else 0 (skin)."""
+    if len(sample.fracture) < 2:
+        return np.zeros(len(sample.surface))
+    from scipy.spatial import cKDTree
+
+    # the fracture sample is sparser than the surface's where it covers much: reach its spacing
+    spacing = float(np.median(cKDTree(sample.fracture).query(sample.fracture, k=2)[0][:, 1]))
+    idx, d = index_of(sample.fracture).query(sample.surface)
+    near = np.asarray(d) < max(reach, 1.5 * spacing)
+    return np.where(near, sample.weights()[np.asarray(idx, np.int64)], 0.0)
+
+
+def fit_cues(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, contact: float, depth: float,
+             index_of=None) -> dict:
+    """Every measured cue of a fit (b moved by `transform` onto a), for choosing thresholds
+    (scripts/bench_verify.py); lengths absolute, shares in [0, 1]."""
+    if index_of is None:
+        index_of = backend.nearest_index
+    inv = np.linalg.inv(transform)
+    out = {}
+    # fracture samples in contact: plain and weighted by the likelihood, each side
+    b_frac = apply(transform, b.fracture)
+    i_ba, d_ba = index_of(a.fracture).query(b_frac)
+    i_ab, d_ab = index_of(b.fracture).query(apply(inv, a.fracture))
+    in_b, in_a = np.asarray(d_ba) < contact, np.asarray(d_ab) < contact
+    wa, wb = a.weights(), b.weights()
+    out["overlap_a"], out["overlap_b"] = float(in_a.mean()), float(in_b.mean())
+    out["woverlap_a"] = float((wa * in_a).sum() / max(wa.sum(), 1e-12))
+    out["woverlap_b"] = float((wb * in_b).sum() / max(wb.sum(), 1e-12))
+    # likelihood of the contact on both sides (skin on fracture scores low)
+    pair_w = np.concatenate([np.minimum(wb[in_b], wa[np.asarray(i_ba)[in_b]]),
+                             np.minimum(wa[in_a], wb[np.asarray(i_ab)[in_a]])])
+    out["contact_likelihood"] = float(pair_w.mean()) if len(pair_w) else 0.0
+    # whole surfaces: touching, facing, skin against skin, interpenetration everywhere
+    reach = 2 * contact
+    sw_a, sw_b = surface_weights(a, reach, index_of), surface_weights(b, reach, index_of)
+    b_surf = apply(transform, b.surface)
+    idx, dist = index_of(a.surface).query(b_surf)
+    idx, dist = np.asarray(idx, np.int64), np.asarray(dist)
+    touch = dist < contact
+    out["touch_b"] = float(touch.mean())
+    b_n = b.normals @ transform[:3, :3].T
+    cos = np.einsum("ij,ij->i", b_n[touch], a.normals[idx[touch]])
+    out["facing"] = float(np.mean(cos < -0.5)) if touch.any() else 1.0
+    out["skin_touch"] = float(np.mean(np.maximum(sw_b[touch], sw_a[idx[touch]]) < 0.2)) if touch.any() else 0.0
+    out["skin_touch_b"] = float(np.sum(touch & (np.maximum(sw_b, sw_a[idx]) < 0.2)) / len(touch))
+    out["pen_all"] = surface_penetration(a, b, transform, depth, index_of)
+    out["pen_any"] = float(max(_inside_share(b_surf, a, depth, contact, index_of),
+                               _inside_share(apply(inv, a.surface), b, depth, contact, index_of)))
+    return out

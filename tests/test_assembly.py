@@ -190,6 +190,38 @@ def test_forest_refuses_interpenetration_and_a_disagreeing_loop(broken):
     assert s.part_accuracy == 1.0
 
 
+@pytest.mark.parametrize("recovery", [True, False])
+def test_forest_drops_a_wrong_match_scored_above_the_right_ones(broken, recovery, monkeypatch):
+    # a wrong match of a touching pair (b pulled 10% of the scale away from a: no interpenetration,
+    # so only the loops of the other matches say it is wrong), scored above every right one
+    import relicgpu.assembly as assembly
+
+    if not recovery:
+        monkeypatch.setattr(assembly, "RECOVERY_ROUNDS", 0)
+    rng = np.random.default_rng(3)
+    samples = truth_samples(broken)
+    solids = [closed_solid(f) for f in broken.fragments]
+    scale = scale_of(broken.fragments)
+    edges = true_edges(broken, rng)
+    a, b = 1, 3  # fragment 3 touches 0, 1 and 2: three loops through it
+    rel = _inv(broken.poses[a]) @ broken.poses[b]
+    away = samples[b].surface.mean(axis=0) @ rel[:3, :3].T + rel[:3, 3] - samples[a].surface.mean(axis=0)
+    pull = np.eye(4)
+    pull[:3, 3] = 0.1 * scale * away / np.linalg.norm(away)
+    wrong = Edge(a, b, pull @ rel, 0.95)
+    others = [e for e in edges if (e.a, e.b) != (a, b)]
+    pose, group, notes = grow_forest(len(broken.fragments), others + [wrong], samples, Params(), scale, ref, solids)
+    poses, groups = _finish_groups(pose, group)
+    s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching, [])
+    if recovery:
+        assert notes[(a, b)].startswith("refused: contradicted by the other matches"), notes
+        assert all(notes[(e.a, e.b)].startswith("used") for e in others), notes
+        assert s.part_accuracy == 1.0
+    else:  # the case recovery is for: the wrong match is used and the object comes out wrong
+        assert notes[(a, b)] == "used: spanning tree"
+        assert s.part_accuracy < 1.0
+
+
 def test_two_objects_end_in_two_groups(broken):
     other = synth.generate(shape="slab", pieces=3, seed=1, faces=800, progress=False)
     rng = np.random.default_rng(2)

@@ -112,3 +112,36 @@ def test_a_fragment_without_fracture_is_sampled_whole_with_uniform_weights():
     assert np.all(p.sample.fracture_weight == 1.0)
     spread = np.ptp(p.sample.fracture, axis=0)
     assert np.all(spread > 1.9)  # both sides of the unit sphere
+
+
+def test_a_wrong_fit_of_a_thin_wall_is_refused_for_not_facing():
+    """On a thin-walled vessel of another generator (relicgpu.corpus, coarse scan) the best fit
+    lays one wall along the other, skin to skin: without the facing and sunk-surface checks it
+    is accepted at a wrong pose; with them it is refused, and no wrong pose is accepted."""
+    from relicgpu import corpus
+    from relicgpu.params import Params
+    from relicgpu.pipeline import pair_scale, prepare
+    from relicgpu.verify import facing_share, verify
+
+    r = corpus.generate("vessel-coarse", pieces=2, seed=0, faces=2000)
+    a, b = r.fragments
+    truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
+    old = Params(min_facing=0.0, max_surface_penetration=1.0)
+    before = match_pair(a, b, old, backend="numpy")
+    assert before.accepted
+    assert _pose_error(before, a, b, truth)[0] > 90  # the case the checks are for
+
+    p = Params()
+    scale = pair_scale(a, b, p)
+    sa, sb = (prepare(f, p, "numpy", scale=scale).sample for f in (a, b))
+    from relicgpu.backends import numpy as ref
+    contact = p.contact_distance * scale
+    assert facing_share(sa, sb, before.transform, contact, ref.nearest_index) < p.min_facing
+    ver = verify(sa, sb, before.transform, ref, contact, p.max_rmse * scale, p.min_overlap,
+                 p.penetration_depth * scale, p.max_penetration, min_facing=p.min_facing,
+                 max_surface_penetration=p.max_surface_penetration)
+    assert not ver.accepted and ver.reason.startswith("facing")
+    assert facing_share(sa, sb, truth, contact, ref.nearest_index) > 2 * p.min_facing  # the true pose faces
+
+    after = match_pair(a, b, backend="numpy")
+    assert not after.accepted or _pose_error(after, a, b, truth)[0] < 2.0
