@@ -101,7 +101,7 @@ def _glb_primitive(doc: dict, binary, fragment: Fragment, rgba) -> dict:
             "mode": GL_TRIANGLES}
 
 
-def write_glb(fh, items, on_faces=None) -> None:
+def write_glb(fh, items, on_faces=None, status=None) -> None:
     """Write a GLB scene of fragments, one named node and mesh each, at full resolution.
 
     Each fragment is read (`full_resolution`), appended to a temporary binary chunk and
@@ -114,11 +114,15 @@ def write_glb(fh, items, on_faces=None) -> None:
     items : iterable of (Fragment, rgba (4 ints 0-255), transform (4, 4))
     on_faces : callable(int), optional
         Told the faces (points, for a cloud) of each fragment once written (a progress bar).
+    status : callable(str), optional
+        Told the fragment being read (a progress bar's postfix).
     """
     doc = {"asset": {"version": "2.0", "generator": "relicgpu"}, "scene": 0, "scenes": [{"nodes": []}],
            "nodes": [], "meshes": [], "materials": [], "accessors": [], "bufferViews": []}
     with tempfile.TemporaryFile() as binary:
         for fragment, rgba, transform in items:
+            if status is not None:
+                status(fragment.name)
             full = full_resolution(fragment)
             doc["meshes"].append({"name": fragment.name, "primitives": [_glb_primitive(doc, binary, full, rgba)]})
             matrix = np.asarray(transform, np.float64).T.ravel().tolist()  # glTF: column-major
@@ -415,9 +419,11 @@ def _set_parts(meshes: list, notes: list[str], status):
         else:
             yield _placed(m, surface.vertices), surface.faces
     if solids:
-        status(f"uniting {len(solids)} solids ({faces:,} faces)")
-        out = (solids[0] if len(solids) == 1 else m3d.Manifold.batch_boolean(solids, m3d.OpType.Add)).to_mesh()
+        n = len(solids)
+        status(f"uniting {n} solids ({faces:,} faces)")
+        out = (solids[0] if n == 1 else m3d.Manifold.batch_boolean(solids, m3d.OpType.Add)).to_mesh()
         del solids
+        status(f"writing the union of {n} solids")
         # float32 as manifold3d holds them; uint32 faces (write_stl takes either)
         yield out.vert_properties[:, :3], out.tri_verts
 
@@ -479,7 +485,7 @@ def write_outputs(assembly, fragments: list[Fragment], out_dir, progress: bool =
     total = sum(full_faces(f) for f in fragments)
     with progress_bar(total, "writing assembly.glb", progress, unit="faces") as bar, \
             atomic_open(out / "assembly.glb") as fh:
-        write_glb(fh, assembly_items(assembly, fragments), bar.update)
+        write_glb(fh, assembly_items(assembly, fragments), bar.update, bar.set_postfix_str)
     notes: list[str] = []
     members = assembly.group_members()
     placed_groups = [g for g, m in sorted(members.items()) if any(assembly.poses[i] is not None for i in m)]
