@@ -13,6 +13,11 @@ edges with; a region's class is the area-weighted majority of its faces. A rough
 fracture surface can break into several regions at its own sharp edges, so
 neighbouring fracture regions are joined into one fracture patch, whose boundary
 loops are the contours.
+
+`Params.segmentation` picks how faces are classed: "roughness" (the above), "regions" (crease
+regions and their shape, `segment_cues`), "union" (a face either calls fracture) or "hybrid" (the
+union, less the pieces only the roughness vote calls fracture that are not well above the mesh's
+own noise floor; crease regions alone on coarse meshes).
 """
 from __future__ import annotations
 
@@ -23,6 +28,14 @@ from scipy.sparse import coo_matrix, identity
 from scipy.sparse.csgraph import connected_components
 
 from .params import Params
+
+
+# "hybrid" (see _hybrid_labels): chosen on synth and corpus rough-*/smooth-*, voronoi-*, vessel-* and
+# the Blender sets held out (docs/benchmarks.md, "Segmentation that holds on more families")
+HYBRID_RATIO = 4.0  # a piece only the roughness vote calls fracture must be this many times the noise floor
+HYBRID_FLOOR_DEG = 0.05  # the noise floor taken at least this (degrees)
+HYBRID_MIN_FACES = 1000  # meshes with fewer faces (coarse, CAD-like) use the crease regions alone: a
+# ring-averaged roughness there measures the facets' curvature, not the surface's roughness
 
 
 @dataclass(frozen=True)
@@ -149,6 +162,11 @@ def _labels(method: str, v, f, normals, areas, topo, angle, rough, params):
     if method == "regions":
         from .segment_cues import cue_labels  # segment_cues builds on this module
         return cue_labels(v, f, normals, areas, topo, angle, params)
+    if method == "hybrid":
+        if len(f) < HYBRID_MIN_FACES:  # coarse: no neighbourhoods to measure roughness on
+            return _labels("regions", v, f, normals, areas, topo, angle, rough, params)
+        return _hybrid_labels(*(_labels(m, v, f, normals, areas, topo, angle, rough, params)
+                                for m in ("roughness", "regions")), rough, areas, topo.edge_faces)
     if method == "roughness":
         return _roughness_labels(rough, areas, topo, angle, params)
     if method == "union":
@@ -167,6 +185,34 @@ def _union_labels(first: tuple, second: tuple, edge_faces: np.ndarray) -> tuple[
     prob = np.zeros(int(region.max()) + 1)
     prob[region] = np.maximum(p1[r1], p2[r2])
     return region, prob
+
+
+def _hybrid_labels(first: tuple, second: tuple, rough: np.ndarray, areas: np.ndarray,
+                   edge_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The roughness vote's and the crease regions' (regions (F,), likelihoods (R,)) overlaid as
+    in `_union_labels`, except that a piece only the roughness vote calls fracture keeps the
+    crease regions' (low) likelihood unless it is at least `HYBRID_RATIO` times rougher than the
+    noise floor, the area-weighted median roughness of the faces both call skin.
+
+    Otsu's split always finds two classes: on a bumpy scanned skin, or a curved one (synth's
+    torso), its upper class is skin a little rougher than the rest; a true rough break stands well
+    above the floor (synth at noise 0: 10-70x). Returns (F,) int64 pieces, (P,) likelihoods."""
+    (r1, p1), (r2, p2) = first, second
+    region, prob = _union_labels(first, second, edge_faces)
+    both_skin = (p1[r1] <= 0.5) & (p2[r2] <= 0.5)
+    floor = HYBRID_FLOOR_DEG
+    if both_skin.any():
+        order = np.argsort(rough[both_skin])
+        cum = np.cumsum(areas[both_skin][order])
+        floor = max(float(rough[both_skin][order][np.searchsorted(cum, 0.5 * cum[-1])]), HYBRID_FLOOR_DEG)
+    n = int(region.max()) + 1
+    mean_rough = np.bincount(region, weights=areas * rough, minlength=n) / np.maximum(
+        np.bincount(region, weights=areas, minlength=n), 1e-300)
+    only_rough = np.zeros(n, bool)
+    only_rough[region] = (p2[r2] <= 0.5) & (p1[r1] > 0.5)
+    regions_prob = np.zeros(n)
+    regions_prob[region] = p2[r2]
+    return region, np.where(only_rough & (mean_rough < HYBRID_RATIO * floor), regions_prob, prob)
 
 
 def _roughness_labels(rough, areas, topo, angle, params):
