@@ -62,9 +62,8 @@ PENETRATION_BAND = 3.0
 CLASH_THICKNESS = 0.01
 CLASH_MIN_VOLUME = 0.002
 # Recovery from a wrong match (`grow_forest`): rounds of leaving one implicated tree edge out,
-# the gain in summed score of used matches a new forest must bring, and the edges tried a round.
+# and the edges tried a round.
 RECOVERY_ROUNDS = 3
-RECOVERY_GAIN = 0.05
 MAX_SUSPECTS = 12
 
 # --- the result --------------------------------------------------------------
@@ -556,9 +555,13 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
     A wrong match scored above the right ones is used first, and the right ones that
     contradict it (a loop far from identity, or a placement that interpenetrates) are then
     refused. So when edges were refused, each used tree edge those refusals implicate
-    (`_suspects`) is in turn left out and the forest grown again; the forest whose used
-    edges weigh most (`_support`) is kept if it weighs more than the current one by
-    RECOVERY_GAIN, and that is repeated up to RECOVERY_ROUNDS times (one wrong match a round).
+    (`_suspects`) is in turn left out and the forest grown again; the forest whose used edges
+    close the most loops (`_support`: loops closed, then summed score of the used edges) is kept
+    where it closes more loops than the current one, and that is repeated up to RECOVERY_ROUNDS
+    times (one wrong match a round). Right matches agree with one another around loops; a wrong
+    one is kept where fewer than two loops contradict it (one against one cannot be told apart),
+    and a match is never dropped for tree edges alone: leaving out a right match that refused
+    interpenetrating wrong ones would let them all join, closing no loop.
     Returns poses (4x4 or None), group label per fragment, and a note per edge.
     """
     solids = solids or [None] * n
@@ -572,23 +575,23 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
             kept = [e for e in edges if (e.a, e.b) != (s.a, s.b) and (e.a, e.b) not in dropped]
             trial = _grow(n, kept, samples, params, scale, backend, solids, memo)
             got = _support(kept, trial[2])
-            better = got[0] > base[0] or (got[0] == base[0] and got[1] > base[1] + RECOVERY_GAIN)
-            if better and (best is None or got > best[0]):
+            if got[0] > base[0] and (best is None or got > best[0]):
                 best = (got, s, trial)
         if best is None:
             break
         got, s, current = best
-        dropped[(s.a, s.b)] = (f"refused: contradicted by the other matches (without it {got[0]} matches "
-                               f"agree, weighing {got[1]:.2f}; with it {base[0]}, weighing {base[1]:.2f})")
+        dropped[(s.a, s.b)] = (f"refused: contradicted by the other matches (without it they close {got[0]} "
+                               f"loop(s), with it {base[0]})")
     pose, group, notes = current
     notes.update(dropped)
     return pose, group, notes
 
 
 def _support(edges: list[Edge], notes: dict) -> tuple[int, float]:
-    """The count and summed score of the used edges: matches that agree with one another."""
-    used = [e.score for e in edges if notes.get((e.a, e.b), "").startswith("used")]
-    return len(used), float(sum(used))
+    """The loops closed (matches that agree with the others around a loop) and the summed score
+    of the used edges."""
+    loops = sum(notes.get((e.a, e.b)) == "used: closes a loop" for e in edges)
+    return loops, float(sum(e.score for e in edges if notes.get((e.a, e.b), "").startswith("used")))
 
 
 def _suspects(edges: list[Edge], group: list[int], notes: dict) -> list[Edge]:

@@ -19,7 +19,8 @@ multi-piece object that do not touch have only wrong fits.
 Cases (family = corpus family or "synth", the project's own generator; seeds --seeds):
 two-piece objects of --faces faces a piece; with --open k the first k of bench_clouds' open
 meshes (clean corpus pieces with three holes cut in the skin); with --multi k that many piece
-pairs of each family's 5-piece object (touching ones first, up to half; --multi-faces).
+pairs of each family's 5-piece object (touching ones first, up to half; --multi-faces); with
+--realdata k that many piece pairs of each Blender set of ../shared/realdata (the rest at random).
 
 `report` computes `verify.fit_cues` for every recorded fit, prints their quantiles over right and
 wrong fits of the fitting families (--train, family prefixes), and counts, with the fitting
@@ -58,6 +59,19 @@ def _cases(args):
 
     families = args.families.split(",")
     seeds = [int(s) for s in args.seeds.split(",")]
+    for name in (corpus.REALDATA_SETS if args.realdata else ()):
+        try:
+            r = corpus.realdata(name, 0)
+        except FileNotFoundError:
+            continue
+        n = len(r.fragments)
+        apart = [(i, j) for i in range(n) for j in range(i + 1, n) if (i, j) not in r.touching]
+        chosen = r.touching[: (args.realdata + 1) // 2]
+        chosen += [apart[k] for k in np.random.default_rng(0).choice(len(apart), args.realdata - len(chosen), False)]
+        for i, j in chosen:
+            truth = np.linalg.inv(r.poses[i]) @ r.poses[j]
+            kind = "multi-touching" if (i, j) in r.touching else "multi-apart"
+            yield name, 0, kind, r.fragments[i], r.fragments[j], truth, corpus.object_size(r)
     for k in range(args.open):
         a, b, truth = make_pair(k, "open", 0, 0.0, "corpus")
         whole = np.vstack([a.vertices, b.vertices @ truth[:3, :3].T + truth[:3, 3]])
@@ -302,6 +316,8 @@ def main(argv=None) -> int:
     c.add_argument("--open", type=int, default=0, help="the first k of bench_clouds' open-mesh pairs")
     c.add_argument("--multi", type=int, default=0, help="piece pairs of each 5-piece object (touching first)")
     c.add_argument("--segmentation", choices=["roughness", "regions", "union"])
+    c.add_argument("--realdata", type=int, default=0, help="piece pairs of each ../shared/realdata Blender set "
+                                                           "(touching ones first, up to half)")
     c.add_argument("--backend", default="numpy")
     r = sub.add_parser("report", help="cues and threshold counts of recorded fits")
     r.add_argument("records", nargs="+")

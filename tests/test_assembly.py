@@ -222,6 +222,30 @@ def test_forest_drops_a_wrong_match_scored_above_the_right_ones(broken, recovery
         assert s.part_accuracy < 1.0
 
 
+def test_forest_keeps_a_right_match_that_refused_interpenetrating_ones(broken):
+    # the right match (0, 1) alone, and two wrong ones that each push a fragment into the place
+    # of 0 or 1: leaving (0, 1) out would let both wrong ones join (two tree edges for one), but
+    # they close no loop, so (0, 1) stays and they stay refused
+    samples = truth_samples(broken)
+    solids = [closed_solid(f) for f in broken.fragments]
+    scale = scale_of(broken.fragments)
+
+    def onto(i, j, k):
+        """j placed (in i's frame) with its centroid on fragment k's true centroid."""
+        rel = _inv(broken.poses[i]) @ broken.poses[j]
+        target = (_inv(broken.poses[i]) @ broken.poses[k])
+        shift = np.eye(4)
+        shift[:3, 3] = (samples[k].surface.mean(axis=0) @ target[:3, :3].T + target[:3, 3]) - (
+            samples[j].surface.mean(axis=0) @ rel[:3, :3].T + rel[:3, 3])
+        return shift @ rel
+
+    right = Edge(0, 1, _inv(broken.poses[0]) @ broken.poses[1], 0.6)
+    wrong = [Edge(0, 2, onto(0, 2, 1), 0.15), Edge(1, 3, onto(1, 3, 0), 0.15)]
+    pose, group, notes = grow_forest(len(broken.fragments), [right] + wrong, samples, Params(), scale, ref, solids)
+    assert notes[(0, 1)] == "used: spanning tree", notes
+    assert all("interpenetrate" in notes[(e.a, e.b)] for e in wrong), notes
+
+
 def test_two_objects_end_in_two_groups(broken):
     other = synth.generate(shape="slab", pieces=3, seed=1, faces=800, progress=False)
     rng = np.random.default_rng(2)
