@@ -423,9 +423,14 @@ def _set_parts(meshes: list, notes: list[str], status):
         status(f"uniting {n} solids ({faces:,} faces)")
         out = (solids[0] if n == 1 else m3d.Manifold.batch_boolean(solids, m3d.OpType.Add)).to_mesh()
         del solids
+        v, f = out.vert_properties[:, :3], out.tri_verts  # float32 as STL stores them; uint32 (write_stl takes either)
+        status(f"checking the union of {n} solids")
+        if not is_closed(v, f):  # manifold3d's vertices of one position, or two rounded to one in float32
+            notes.append(f"{', '.join(g.name for g, _ in meshes)}: their union is not closed as merged.stl stores "
+                         "it (float32 corners, welded by position: some edges are not shared by exactly two "
+                         "faces once each way), so merged.stl is not watertight there")
         status(f"writing the union of {n} solids")
-        # float32 as manifold3d holds them; uint32 faces (write_stl takes either)
-        yield out.vert_properties[:, :3], out.tri_verts
+        yield v, f
 
 
 def merged_solid(fragments: list[Fragment], poses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, list[str]]:

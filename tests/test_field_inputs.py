@@ -431,3 +431,15 @@ def test_a_union_too_big_for_memory_is_written_as_separate_shells_and_says_so(mo
     v, f, notes = outputs.merged_solid([box, box], [np.eye(4), near])
     merged = trimesh.Trimesh(v, f, process=False)
     assert notes == [] and merged.is_watertight and np.isclose(merged.volume, 1.5 * _box().volume)
+
+
+def test_a_union_that_does_not_close_as_written_says_so():
+    from relicgpu.outputs import merged_solid
+
+    box = fragment_from_arrays_quiet("box", _box().vertices, _box().faces)
+    corner = np.eye(4)
+    corner[:3, 3] = [1, 2, 0]  # the two boxes touch along one edge: four faces meet there, by position
+    v, f, notes = merged_solid([box, box], [np.eye(4), corner])
+    assert len(f) == 24 and not trimesh.Trimesh(v, f).is_watertight
+    assert len(notes) == 1 and notes[0].startswith("box, box: their union is not closed as merged.stl stores it")
+    assert notes[0].endswith("so merged.stl is not watertight there")
