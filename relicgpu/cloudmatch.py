@@ -37,19 +37,24 @@ STRICT_SPREADS = 2.0
 # noise floor of its own smooth surface) are left out as crease points instead.
 CREASE_NEIGHBOURS = 8
 CREASE_REACH = 4.0
-CREASE_DEG = 30.0
+CREASE_DEG = 20.0
 CREASE_VARIATION = 6.0
 # Regions of at least this share of the points are tried as fracture, at most REGIONS of them
 # (largest first) a fragment.
 MIN_REGION_SHARE = 0.03
 REGIONS = 3
 # A fit between two regions is accepted when it passes `verify` with both regions touching over
-# at least REGION_OVERLAP of their points and REGION_FACING of the touching surfaces facing each
-# other. Fitted on the corpus's clean rough/smooth/voronoi/vessel pairs of seeds 0-2 with normals:
-# right region fits 0.21-0.61 overlap, facing 0.77-0.95; skin on skin (nested vessel walls, a
-# flat skin on a flat break) 0.13-0.34 overlap, facing 0.50-0.84.
+# at least REGION_OVERLAP of their points, REGION_FACING of the touching surfaces facing each
+# other, and a residual of at most REGION_RESIDUAL times the two regions' roughness combined
+# (`roughness`, root of the summed squares: two samplings of one surface differ by their noise;
+# two skin patches laid on each other by their shapes too). Fitted on the corpus's clean
+# rough/smooth/voronoi/vessel pairs of seeds 0-5 with normals: right region fits 0.50-0.63
+# overlap, facing 0.77-0.95, residual 0.72-1.37 roughnesses; skin on skin (nested vessel walls,
+# patches of a pebble) overlap 0.13-0.60, facing 0.50-0.99, residual 1.39-3.17 (1.74 and up at
+# overlaps over 0.41).
 REGION_OVERLAP = 0.4
 REGION_FACING = 0.85
+REGION_RESIDUAL = 1.6
 REGION_TURNS = 36  # turns about the common normal tried for two regions put face to face
 # Two accepted region fits at different poses whose overlaps are within this ratio make the
 # pair ambiguous (a near-symmetric flat break: the outline of an ellipse fits at two turns).
@@ -85,11 +90,19 @@ def crease_regions(points: np.ndarray, normals: np.ndarray, given: bool) -> list
             if sizes[r] >= MIN_REGION_SHARE * n]
 
 
+def roughness(points: np.ndarray) -> float:
+    """How far (N, 3) points stray from a plane at the scale contact is measured at: the median
+    RMS distance of each point's ROUGHNESS_FIT nearest points from their plane fit."""
+    if len(points) < ROUGHNESS_FIT:
+        return 0.0
+    return float(np.sqrt(np.median(np.maximum(local_pca(points, ROUGHNESS_FIT)[0][:, 0], 0.0))))
+
+
 def region_samples(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
-                   scale: float) -> list[tuple[SurfaceSample, tuple[np.ndarray, np.ndarray]]]:
+                   scale: float) -> list[tuple[SurfaceSample, tuple[np.ndarray, np.ndarray], float]]:
     """Up to REGIONS samples of a cloud's (N, 3) points, each taking one `crease_regions` region
     as its fracture (`cloud_sample`'s surface), with the region's centre and mean normal (a
-    patch: starts put two of them face to face)."""
+    patch: starts put two of them face to face) and its `roughness`."""
     points = np.asarray(points, np.float64)
     normals = estimate_normals(points, given_normals)
     surf = even_subsample(points, 2 * params.icp_points)
@@ -102,7 +115,7 @@ def region_samples(points: np.ndarray, given_normals: np.ndarray | None, params:
         plane_normals = smoothed_normals(points[idx], normals[idx], params.ppf_normal_radius * scale)
         out.append((SurfaceSample(points[idx], np.zeros(len(idx), np.int64), normals[idx], points[surf],
                                   normals[surf], plane_normals),
-                    (points[region].mean(0), mean / np.linalg.norm(mean))))
+                    (points[region].mean(0), mean / np.linalg.norm(mean)), roughness(points[idx])))
     return out
 
 
@@ -152,10 +165,7 @@ def fracture_roughness(points: np.ndarray, given_normals: np.ndarray | None, par
     """How far a cloud's fracture sample (`fracture_points`) strays from a plane at the scale the
     contact is measured at: the median RMS distance of each sample point's ROUGHNESS_FIT nearest
     sample points from their plane fit (noise and the break's own relief together)."""
-    fracture = np.asarray(points, np.float64)[fracture_points(points, given_normals, params)]
-    if len(fracture) < ROUGHNESS_FIT:
-        return 0.0
-    return float(np.sqrt(np.median(np.maximum(local_pca(fracture, ROUGHNESS_FIT)[0][:, 0], 0.0))))
+    return roughness(np.asarray(points, np.float64)[fracture_points(points, given_normals, params)])
 
 
 # Two samplings of a rough break, a point spacing apart, never share points: the residual to the

@@ -18,7 +18,8 @@ from .backends import resolve
 from .icp import same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
 from .io import Fragment, is_cloud
 from .params import Params
-from .cloudmatch import MIN_FACING, STRICT_SPREADS, cloud_params, cloud_sample
+from .cloudmatch import (AMBIGUOUS_SHARE, MIN_FACING, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS,
+                         STRICT_SPREADS, cloud_params, cloud_sample, region_samples)
 from .pointcloud import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals, vote_poses
 from .segment import segment
@@ -45,6 +46,7 @@ class Prepared:
     patches: list = field(default_factory=list)  # fracture patches, largest first
     timings: dict = field(default_factory=dict)
     strict_sample: SurfaceSample | None = None  # clouds: the fracture picked strictly (cloudmatch.STRICT_SPREADS)
+    regions: list = field(default_factory=list)  # clouds: (sample, patch) of each crease-bounded region
 
     @property
     def fracture_faces(self) -> np.ndarray:
@@ -152,9 +154,11 @@ def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
     given = getattr(fragment, "normals", None)
     sample = cloud_sample(fragment.vertices, given, params, scale)
     strict = cloud_sample(fragment.vertices, given, params, scale, STRICT_SPREADS)
+    regions = [(s, Patch(0, centre, normal, 1.0), rough) for s, (centre, normal), rough in
+               region_samples(fragment.vertices, given, params, scale)]
     no_faces = np.zeros(0, np.int64)
     return Prepared(fragment, scale, no_faces, np.zeros(0, bool), [], sample, [],
-                    {"cloud": time.perf_counter() - t0}, strict)
+                    {"cloud": time.perf_counter() - t0}, strict, regions)
 
 
 @dataclass(frozen=True)
@@ -282,6 +286,14 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     result = _match_prepared(pa, pb, params, be, heads, scale, timings)
     if result.accepted or heads is not None or pa.strict_sample is None or pb.strict_sample is None:
         return result
+    result = _match_strict(pa, pb, params, be, scale, timings, result)
+    return result if result.accepted else _match_regions(pa, pb, params, be, scale, timings, result)
+
+
+def _match_strict(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
+                  result: PairMatch) -> PairMatch:
+    """Two clouds matched on their strictly picked fracture (result: the wider pick's, kept
+    where this finds nothing)."""
     # sparse clouds: fracture picked strictly (fewer skin points) can find a contact the wider
     # pick's votes missed (a thin wall's narrow break); the fit must still pass on the wider pick
     strict = _match_prepared(replace(pa, sample=pa.strict_sample), replace(pb, sample=pb.strict_sample), params, be,
@@ -296,9 +308,76 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
                    penetration=ver.penetration, reason=ver.reason if ver.accepted else result.reason)
 
 
+def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
+                   result: PairMatch) -> PairMatch:
+    """Two clouds matched with each crease-bounded region of a against each of b as the fracture
+    (a clean break is no rougher than the skin). The accepted fit whose regions touch over the
+    largest share wins, unless a fit at another pose touches nearly as widely: a symmetric break
+    cannot tell them apart, and a guess is worse than no answer (result: kept where none wins)."""
+    # a flat break fits its partner at one turn only, which its outline alone decides
+    turns = params.with_(patch_turns=REGION_TURNS)
+    accepted = []  # (overlap, transform, verification)
+    for sa, patch_a, rough_a in pa.regions:
+        for sb, patch_b, rough_b in pb.regions:
+            fits, index_of = _candidate_fits(replace(pa, sample=sa, patches=[patch_a]),
+                                             replace(pb, sample=sb, patches=[patch_b]), turns, be, None, scale,
+                                             dict(timings))
+            for transform, *_ in fits:
+                ver = verify(sa, sb, transform, be, params.contact_distance * scale,
+                             REGION_RESIDUAL * np.hypot(rough_a, rough_b), REGION_OVERLAP, params.penetration_depth * scale, params.max_penetration, index_of,
+                             mutual=True, min_facing=REGION_FACING)
+                if ver.accepted:
+                    accepted.append((ver.overlap, transform, ver))
+    if not accepted:
+        return result
+    accepted.sort(key=lambda x: -x[0])
+    overlap, transform, ver = accepted[0]
+    rivals = [o for o, t, _ in accepted[1:] if not same_pose(t, transform, params.contact_distance * scale)]
+    fit = PairMatch(transform, True, overlap * (1.0 - ver.penetration), ver.rmse, overlap, ver.penetration,
+                    np.zeros((0, 2), np.int64), -1, -1, "accepted (crease regions)", timings)
+    if rivals and rivals[0] >= AMBIGUOUS_SHARE * overlap:
+        return replace(fit, accepted=False, score=0.0, reason="ambiguous: crease regions fit at two poses alike "
+                       f"(overlap {overlap:.2f} and {rivals[0]:.2f})")
+    return fit
+
+
 def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict) -> PairMatch:
     """match_pair on prepared fragments: coarse poses, ICP, verification (timings: added to)."""
     t_start = time.perf_counter() - timings["prepare"]
+    fits, index_of = _candidate_fits(pa, pb, params, be, heads, scale, timings)
+    t1 = time.perf_counter()
+    # verify the best-touching fits first; stop at the first accepted
+    clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
+    best = None
+    for transform, ca, cb, pairs in fits:
+        ver = verify(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
+                     params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
+                     params.max_penetration, index_of, mutual=clouds,
+                     min_facing=MIN_FACING if clouds else params.min_facing,
+                     max_surface_penetration=1.0 if clouds else params.max_surface_penetration)
+        rank = (ver.accepted, ver.overlap - ver.penetration)
+        if best is None or rank > best[0]:
+            best = (rank, transform, ver, ca, cb, pairs)
+        if ver.accepted:
+            break
+    timings["icp+verify"] += time.perf_counter() - t1
+    timings["total"] = time.perf_counter() - t_start
+
+    if best is None:
+        reason = "no fracture contours" if not (pa.contours and pb.contours) else "no consistent LCS correspondences"
+        return PairMatch(np.eye(4), False, 0.0, float("inf"), 0.0, 0.0, np.zeros((0, 2), np.int64), -1, -1,
+                         reason, timings)
+    _, transform, ver, ca, cb, pairs = best
+    score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
+    return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
+                     pairs, ca, cb, ver.reason, timings)
+
+
+def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict):
+    """The fits of a pair to verify, best-touching first: coarse poses (LCS, point-pair votes,
+    patches face to face), ranked by a short ICP, then the best few refined. Returns the list of
+    (transform, contour_a, contour_b, lcs pairs) and the nearest-neighbour index function of the
+    pair's point sets (timings: "coarse" and "icp+verify" set)."""
     t0 = time.perf_counter()
     if heads is not None:
         ca, ia, cb, ib = (int(h) for h in heads)
@@ -379,26 +458,5 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
                                          fine[best_first], be, params.plane_iterations, params.contact_distance * scale,
                                          index_of(pa.sample.fracture), w_b, w_a)
         fits = [(polished[i], *candidates[k][2:]) for i, k in enumerate(best_first)]
-    # verify the best-touching fits first; stop at the first accepted
-    clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
-    best = None
-    for transform, ca, cb, pairs in fits:
-        ver = verify(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
-                     params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
-                     params.max_penetration, index_of, mutual=clouds, min_facing=MIN_FACING if clouds else 0.0)
-        rank = (ver.accepted, ver.overlap - ver.penetration)
-        if best is None or rank > best[0]:
-            best = (rank, transform, ver, ca, cb, pairs)
-        if ver.accepted:
-            break
     timings["icp+verify"] = time.perf_counter() - t1
-    timings["total"] = time.perf_counter() - t_start
-
-    if best is None:
-        reason = "no fracture contours" if not (pa.contours and pb.contours) else "no consistent LCS correspondences"
-        return PairMatch(np.eye(4), False, 0.0, float("inf"), 0.0, 0.0, np.zeros((0, 2), np.int64), -1, -1,
-                         reason, timings)
-    _, transform, ver, ca, cb, pairs = best
-    score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
-    return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
-                     pairs, ca, cb, ver.reason, timings)
+    return fits, index_of
