@@ -196,7 +196,7 @@ def _hybrid_labels(first: tuple, second: tuple, rough: np.ndarray, areas: np.nda
 
     Otsu's split always finds two classes: on a bumpy scanned skin, or a curved one (synth's
     torso), its upper class is skin a little rougher than the rest; a true rough break stands well
-    above the floor (synth at noise 0: 3-12x on vase and torso pieces, 58-75x on slabs). Returns (F,) int64 pieces, (P,) likelihoods."""
+    above the floor (synth at noise 0: 2.6-12x on vase and torso pieces, 58-75x on slabs). Returns (F,) int64 pieces, (P,) likelihoods."""
     (r1, p1), (r2, p2) = first, second
     region, prob = _union_labels(first, second, edge_faces)
     both_skin = (p1[r1] <= 0.5) & (p2[r2] <= 0.5)
