@@ -11,8 +11,9 @@ matches nothing is added (a fragment left unplaced). `relicgpu assemble DIR -o O
 GNU time (``/usr/bin/time -v``; else the child's ru_maxrss from `resource`): the script prints
 its peak resident set size, its wall time, the phase times from assembly.json, and checks what
 the outputs carry: the big piece's faces in assembly.glb, merged.stl's facets and whether they
-close into a consistently oriented surface (`outputs.is_closed`, corners welded by exact
-position), and the notes on merging. --json writes the figures.
+close into consistently oriented shells (`outputs.is_closed`, corners welded by exact
+position; shells written side by side pass too, so read the notes on merging with it).
+--json writes the figures.
 """
 from __future__ import annotations
 
@@ -149,7 +150,7 @@ def main(argv=None) -> int:
         stem = Path(big).stem
         print(f"assembly.glb: {stem} {carried['glb_faces'].get(stem, 0):,} faces (file {counts[big]:,}); "
               + (f"merged.stl: {carried['merged_facets']:,} facets, "
-                 + ("closed and oriented (watertight)" if carried["merged_closed"] else "not watertight")
+                 + ("every shell closed and oriented" if carried["merged_closed"] else "not watertight")
                  if carried["merged_facets"] is not None else "no merged.stl"))
         for note in carried["notes"]:
             if "merged" in note or "thinned" in note:
