@@ -480,6 +480,28 @@ def test_real_index_and_import_map():
 
 # --- background assembly and server-sent events ------------------------------------------
 
+def test_every_url_of_api_js_is_a_route(box):
+    """Each URL literal of the page's api.js (placeholders filled in, query dropped) is a
+    route of the app for the method it is called with: POST for post(...), GET otherwise."""
+    import re
+
+    from relicgpu.viewer.app import viewer_dir
+    from werkzeug.exceptions import HTTPException
+
+    src = (viewer_dir() / "api.js").read_text(encoding="utf-8")
+    calls = re.findall(r"""(\bpost\(\s*)?(['`])(/[^'`]*)\2""", src)
+    urls = {("POST" if via_post else "GET", re.sub(r"\$\{[^}]*\}", "x", url).split("?")[0])
+            for via_post, _, url in calls}
+    assert {m for m, _ in urls} == {"GET", "POST"} and len(urls) >= 9, urls
+    routes = create_app(box[0]).url_map.bind("localhost")
+    for method, url in sorted(urls):
+        try:
+            endpoint, _ = routes.match(url, method=method)
+        except HTTPException as exc:
+            pytest.fail(f"api.js calls {method} {url}, not a route of the app ({exc.code})")
+        assert endpoint.startswith("viewer.api_"), (method, url, endpoint)
+
+
 def _events(text: str) -> list[dict]:
     return [json.loads(line[6:]) for line in text.splitlines() if line.startswith("data: ")]
 
