@@ -24,10 +24,11 @@ class Params:
     min_region_share: float = 0.01   # ... as are regions with less than this share of the faces
     # "roughness": Otsu split of the roughness + vote (above); "regions": crease regions, skin grown
     # from the largest over gentle boundaries, the rest by shape cues (segment_cues, issue 16 item 2);
-    # "union": both, a face's fracture likelihood the larger of the two (faces either finds are candidates).
-    # Default "roughness": "union" won on the corpus (pairs right 5/12 -> 7/12) but calls a slab's flat
-    # sides fracture: synth grid 15/18 and two remeshed slab pairs lost (docs/benchmarks.md)
-    segmentation: str = "roughness"
+    # "union": both, a face's fracture likelihood the larger of the two (faces either finds are candidates);
+    # "hybrid" (default): the union less rough-only pieces near the mesh's own noise floor, crease
+    # regions alone on coarse meshes (segment.py). It holds the synth grid, where "union" lost a
+    # slab's flat sides, and finds the clean and coarse breaks "roughness" misses (docs/benchmarks.md)
+    segmentation: str = "hybrid"
     region_merge_deg: float = 35.0   # regions join the skin across boundaries turning less than this ...
     region_merge_noise: float = 2.0  # ... plus this many times the skin's roughness (degrees) ...
     region_rough_max: float = 3.0    # ... unless rougher than this many times the skin

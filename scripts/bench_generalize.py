@@ -237,7 +237,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="one seed, small pieces, no realdata assembly")
     ap.add_argument("--realdata-assemble", action=argparse.BooleanOptionalAction, default=None,
                     help="assemble the 20-piece realdata sets (default: not in --quick)")
-    ap.add_argument("--segmentation", choices=["roughness", "regions", "union"],
+    ap.add_argument("--segmentation", choices=["roughness", "regions", "union", "hybrid"],
                     help="Params.segmentation for every case (default: Params' own)")
     ap.add_argument("--dry", action="store_true", help="build the cases and report their labels only")
     ap.add_argument("--json", help="write the rows and every case here")
