@@ -25,10 +25,10 @@ class Params:
     # "roughness": Otsu split of the roughness + vote (above); "regions": crease regions, skin grown
     # from the largest over gentle boundaries, the rest by shape cues (segment_cues, issue 16 item 2);
     # "union": both, a face's fracture likelihood the larger of the two (faces either finds are candidates);
-    # "hybrid" (default): the union less rough-only pieces near the mesh's own noise floor, crease
-    # regions alone on coarse meshes (segment.py). It holds the synth grid, where "union" lost a
-    # slab's flat sides, and finds the clean and coarse breaks "roughness" misses (docs/benchmarks.md)
-    segmentation: str = "hybrid"
+    # "hybrid": the union less rough-only pieces near the mesh's own noise floor, crease regions alone
+    # on coarse meshes (segment.py). Default "roughness": hybrid holds the synth grid and wins on the
+    # corpus, but the Blender cylinder assembles 0.65 with it against 0.85 (docs/benchmarks.md)
+    segmentation: str = "roughness"
     region_merge_deg: float = 35.0   # regions join the skin across boundaries turning less than this ...
     region_merge_noise: float = 2.0  # ... plus this many times the skin's roughness (degrees) ...
     region_rough_max: float = 3.0    # ... unless rougher than this many times the skin
