@@ -543,6 +543,9 @@ def _fracture(obj, pieces, roughness, spacing, rng, bar):
         mean = (centres * areas[:, None]).sum(0) / areas.sum()
         cov = ((centres - mean) * areas[:, None]).T @ (centres - mean)
         long_axis = np.linalg.eigh(cov)[1][:, -1]
+        # LAPACK's sign of an eigenvector differs between CPUs (it broke the same seed into other
+        # pieces on Intel and AMD hosts): fix it, so that a seed is one object everywhere
+        long_axis = long_axis * np.sign(long_axis[np.argmax(np.abs(long_axis))])
         for attempt in range(MAX_CUT_ATTEMPTS):
             tilt = 0.6 if attempt < MAX_CUT_ATTEMPTS // 2 else 3.0  # then nearly any plane
             normal = long_axis + tilt * _random_unit(rng)
