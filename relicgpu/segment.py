@@ -34,6 +34,13 @@ from .params import Params
 # the Blender sets held out (docs/benchmarks.md, "Segmentation that holds on more families")
 HYBRID_RATIO = 4.0  # a piece only the roughness vote calls fracture must be this many times the noise floor
 HYBRID_FLOOR_DEG = 0.05  # the noise floor taken at least this (degrees)
+# ... unless, its roughness measured with the rings kept inside it, it is smoother than this share of
+# the floor and has at least this many faces (smaller pieces have too few neighbours inside): chosen
+# on corpus vessel-clean, rough-clean/-noisy, smooth-noisy and synth (seeds 0-1), voronoi-* and the
+# Blender sets held out; only-rough pieces of 10+ faces measured 0.00-0.03 of the floor on vessel
+# bottoms, 0.6 and more on the rest
+HYBRID_OWN_RATIO = 0.25
+HYBRID_OWN_MIN_FACES = 20
 HYBRID_MIN_FACES = 1000  # meshes with fewer faces (coarse, CAD-like) use the crease regions alone: a
 # ring-averaged roughness there measures the facets' curvature, not the surface's roughness
 
@@ -166,7 +173,8 @@ def _labels(method: str, v, f, normals, areas, topo, angle, rough, params):
         if len(f) < HYBRID_MIN_FACES:  # coarse: no neighbourhoods to measure roughness on
             return _labels("regions", v, f, normals, areas, topo, angle, rough, params)
         return _hybrid_labels(*(_labels(m, v, f, normals, areas, topo, angle, rough, params)
-                                for m in ("roughness", "regions")), rough, areas, topo.edge_faces)
+                                for m in ("roughness", "regions")), rough, areas, topo.edge_faces,
+                              (normals, angle < params.crease_angle_deg, params.roughness_rings))
     if method == "roughness":
         return _roughness_labels(rough, areas, topo, angle, params)
     if method == "union":
@@ -188,7 +196,7 @@ def _union_labels(first: tuple, second: tuple, edge_faces: np.ndarray) -> tuple[
 
 
 def _hybrid_labels(first: tuple, second: tuple, rough: np.ndarray, areas: np.ndarray,
-                   edge_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                   edge_faces: np.ndarray, own: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The roughness vote's and the crease regions' (regions (F,), likelihoods (R,)) overlaid as
     in `_union_labels`, except that a piece only the roughness vote calls fracture keeps the
     crease regions' (low) likelihood unless it is at least `HYBRID_RATIO` times rougher than the
@@ -196,7 +204,14 @@ def _hybrid_labels(first: tuple, second: tuple, rough: np.ndarray, areas: np.nda
 
     Otsu's split always finds two classes: on a bumpy scanned skin, or a curved one (synth's
     torso), its upper class is skin a little rougher than the rest; a true rough break stands well
-    above the floor (synth at noise 0: 2.6-12x on vase and torso pieces, 58-75x on slabs). Returns (F,) int64 pieces, (P,) likelihoods."""
+    above the floor (synth at noise 0: 2.6-12x on vase and torso pieces, 58-75x on slabs).
+
+    `own` = (normals (F, 3), smooth (E,) bool edges below the crease angle, rings): a piece of at
+    least `HYBRID_OWN_MIN_FACES` faces whose roughness, measured with the rings kept inside it, is
+    below `HYBRID_OWN_RATIO` times the floor keeps the crease regions' likelihood too. The rings of
+    `rough` reach over gentle creases: a vessel's flat bottom took the curvature of the wall it meets
+    (4.0-4.3x the floor on corpus vessel-clean) though flat.
+    Returns (F,) int64 pieces, (P,) likelihoods."""
     (r1, p1), (r2, p2) = first, second
     region, prob = _union_labels(first, second, edge_faces)
     both_skin = (p1[r1] <= 0.5) & (p2[r2] <= 0.5)
@@ -210,6 +225,14 @@ def _hybrid_labels(first: tuple, second: tuple, rough: np.ndarray, areas: np.nda
         np.bincount(region, weights=areas, minlength=n), 1e-300)
     only_rough = np.zeros(n, bool)
     only_rough[region] = (p2[r2] <= 0.5) & (p1[r1] > 0.5)
+    if own is not None and only_rough.any():
+        normals, smooth, rings = own
+        e0, e1 = edge_faces[:, 0], edge_faces[:, 1]
+        inside = face_roughness(normals, areas, edge_faces[smooth & (region[e0] == region[e1])], rings)
+        own_rough = np.bincount(region, weights=areas * inside, minlength=n) / np.maximum(
+            np.bincount(region, weights=areas, minlength=n), 1e-300)
+        big = np.bincount(region, minlength=n) >= HYBRID_OWN_MIN_FACES
+        mean_rough = np.where(big & (own_rough < HYBRID_OWN_RATIO * floor), 0.0, mean_rough)
     regions_prob = np.zeros(n)
     regions_prob[region] = p2[r2]
     return region, np.where(only_rough & (mean_rough < HYBRID_RATIO * floor), regions_prob, prob)
