@@ -17,7 +17,7 @@ loops are the contours.
 `Params.segmentation` picks how faces are classed: "roughness" (the above), "regions" (crease
 regions and their shape, `segment_cues`), "union" (a face either calls fracture) or "hybrid" (the
 union, less the pieces only the roughness vote calls fracture that are not well above the mesh's
-own noise floor; crease regions alone on coarse meshes).
+own noise floor; crease regions alone on coarse meshes and where a thin wall's ends decide them).
 """
 from __future__ import annotations
 
@@ -172,8 +172,12 @@ def _labels(method: str, v, f, normals, areas, topo, angle, rough, params):
     if method == "hybrid":
         if len(f) < HYBRID_MIN_FACES:  # coarse: no neighbourhoods to measure roughness on
             return _labels("regions", v, f, normals, areas, topo, angle, rough, params)
-        return _hybrid_labels(*(_labels(m, v, f, normals, areas, topo, angle, rough, params)
-                                for m in ("roughness", "regions")), rough, areas, topo.edge_faces,
+        from .segment_cues import cue_labels
+        *regions, ends = cue_labels(v, f, normals, areas, topo, angle, params, details=True)
+        if ends:  # a thin wall's ends, rounded by a rescan: the roughness vote measures their curvature
+            return tuple(regions)
+        return _hybrid_labels(_labels("roughness", v, f, normals, areas, topo, angle, rough, params), tuple(regions),
+                              rough, areas, topo.edge_faces,
                               (normals, angle < params.crease_angle_deg, params.roughness_rings))
     if method == "roughness":
         return _roughness_labels(rough, areas, topo, angle, params)

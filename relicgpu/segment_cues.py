@@ -409,7 +409,7 @@ def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
 
 
 def cue_labels(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, areas: np.ndarray, topo: Topology,
-               edge_angle: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
+               edge_angle: np.ndarray, params: Params, details: bool = False) -> tuple:
     """Crease regions and their fracture likelihood (`Params.segmentation == "regions"`).
 
     Parameters
@@ -421,11 +421,13 @@ def cue_labels(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, are
     topo : the mesh's `Topology`
     edge_angle : (E,) degrees
     params : `Params`
+    details : also return whether the wall's ends decided (`wall_end_labels`)
 
     Returns
     -------
     region : (F,) int64 region id per face, 0..R-1
     prob : (R,) fracture likelihood in [0, 1] (> 0.5: fracture)
+    ends : bool, only with `details`: the labels are the wall's ends less lips, not the crease regions'
     """
     region = crease_regions(normals, areas, topo, edge_angle)
     cues = region_cues(vertices, normals, areas, topo, edge_angle, region)
@@ -438,10 +440,13 @@ def cue_labels(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, are
         size = float(np.linalg.norm(centers.max(0) - centers.min(0)))  # as `wall_thickness` measures it
         band = band_shape(centers, areas, region) / max(size, 1e-300)
     prob = region_fracture_prob(cues, skin, seed, params, wall, band)
+    ends = False
     if wall < params.region_thin_wall and len(faces) >= WALL_END_MIN_FACES:
         size = float(np.linalg.norm(centers.max(0) - centers.min(0)))
-        return wall_end_labels(centers, normals, areas, topo, region, prob, wall * size)
-    return region, prob
+        pieces, piece_prob = wall_end_labels(centers, normals, areas, topo, region, prob, wall * size)
+        ends = pieces is not region
+        region, prob = pieces, piece_prob
+    return (region, prob, ends) if details else (region, prob)
 
 
 def wall_end_alignment(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, wall: float) -> np.ndarray:
