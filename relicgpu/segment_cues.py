@@ -63,11 +63,15 @@ LIP_BEND_WALLS = 1.4  # ... curves by more than this many walls across it (a fla
 LIP_FLAT_WALLS = 0.03  # ... and its face centres lie within this many walls (RMS) of one plane
 # Wall ends (`wall_end_labels`, dense thin walls): chosen on corpus vessel-noisy and vessel-clean
 # (seeds 0-3), voronoi-* and the Blender sets held out. Face-level recall / precision of "end faces
-# less lips" on vessel-noisy: 0.89 / 0.80 (the crease regions: 0.61 / 0.59); t 0.7: 0.78 / 0.90 less lips, 0.9: 0.96 / 0.77
+# less lips" on vessel-noisy: 0.885 / 0.809 (the crease regions: 0.61 / 0.59); WALL_END_ALIGN 0.8:
+# 0.856 / 0.825, 0.85: 0.901 / 0.796, 0.9: 0.942 / 0.744 (the skin faces it adds lie within a wall
+# of the break: its labels' own blur)
 WALL_END_MIN_FACES = 1000  # meshes with fewer faces (coarse) keep the crease regions alone
 WALL_END_RADIUS = 5.0  # the wall's axis is taken over faces within this many walls ...
 WALL_END_NEIGHBOURS = 64  # ... at most this many
-WALL_END_ALIGN = 0.8  # a face is on the wall's end where |cos| between its normal and the wall's axis is below this
+WALL_END_ALIGN = 0.83  # a face is on the wall's end where |cos| between its normal and the wall's axis is below this
+LIP_CORE_ALIGN = 0.8  # lips are found among the faces below this (a wider set breaks their planar runs) ...
+LIP_GROW_RINGS = 5  # ... and grown this many edge steps through the wall's ends (their rounded rims)
 WALL_END_SOFTNESS = 0.05  # width of the logistic step on that |cos|
 END_FLAT_RADIUS = 4.0  # an end face is locally planar when the end faces within this many walls ...
 END_FLAT_WALLS = 0.15  # ... lie within this many walls (RMS) of one plane; runs of such faces are lips when
@@ -520,12 +524,15 @@ def wall_end_labels(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     """
     align = wall_end_alignment(centers, normals, areas, wall)
     p_end = 1.0 / (1.0 + np.exp(-np.clip((WALL_END_ALIGN - align) / WALL_END_SOFTNESS, -50, 50)))
-    lip = end_lips(centers, areas, topo, p_end > 0.5, wall)
-    ends = (p_end > 0.5) & ~lip
+    end = p_end > 0.5
+    lip = end_lips(centers, areas, topo, align < LIP_CORE_ALIGN, wall)
+    e0, e1 = topo.edge_faces[:, 0], topo.edge_faces[:, 1]
+    lip |= end & (ring_average(lip.astype(np.float64), np.ones(len(lip)), topo.edge_faces[end[e0] & end[e1]],
+                               LIP_GROW_RINGS) > 0)
+    ends = end & ~lip
     if areas[ends & (prob[region] > 0.5)].sum() >= WALL_END_COVERED * areas[ends].sum():
         return region, prob
     face_p = np.where(lip, 0.0, p_end)
-    e0, e1 = topo.edge_faces[:, 0], topo.edge_faces[:, 1]
     frac = face_p > 0.5
     same = (region[e0] == region[e1]) & (frac[e0] == frac[e1]) & (lip[e0] == lip[e1])
     pieces = _components(len(centers), topo.edge_faces[same])
