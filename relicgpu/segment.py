@@ -173,12 +173,12 @@ def _labels(method: str, v, f, normals, areas, topo, angle, rough, params):
         if len(f) < HYBRID_MIN_FACES:  # coarse: no neighbourhoods to measure roughness on
             return _labels("regions", v, f, normals, areas, topo, angle, rough, params)
         from .segment_cues import cue_labels
-        *regions, ends = cue_labels(v, f, normals, areas, topo, angle, params, details=True)
+        *regions, ends, lips = cue_labels(v, f, normals, areas, topo, angle, params, details=True)
         if ends:  # a thin wall's ends, rounded by a rescan: the roughness vote measures their curvature
             return tuple(regions)
         return _hybrid_labels(_labels("roughness", v, f, normals, areas, topo, angle, rough, params), tuple(regions),
                               rough, areas, topo.edge_faces,
-                              (normals, angle < params.crease_angle_deg, params.roughness_rings))
+                              (normals, angle < params.crease_angle_deg, params.roughness_rings), lips)
     if method == "roughness":
         return _roughness_labels(rough, areas, topo, angle, params)
     if method == "union":
@@ -187,12 +187,16 @@ def _labels(method: str, v, f, normals, areas, topo, angle, rough, params):
     raise ValueError(f"unknown segmentation {method!r}")
 
 
-def _union_labels(first: tuple, second: tuple, edge_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _union_labels(first: tuple, second: tuple, edge_faces: np.ndarray,
+                  split: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Two segmentations' (regions (F,), likelihoods (R,)) overlaid: regions are the connected
-    pieces where both agree, a piece's likelihood the larger of its two (a face either method
-    calls fracture is a candidate; matching weighs it by its likelihood, verification decides)."""
+    pieces where both agree (and `split`, (F,), is the same), a piece's likelihood the larger of its
+    two (a face either method calls fracture is a candidate; matching weighs it by its likelihood,
+    verification decides)."""
     (r1, p1), (r2, p2) = first, second
     same = (r1[edge_faces[:, 0]] == r1[edge_faces[:, 1]]) & (r2[edge_faces[:, 0]] == r2[edge_faces[:, 1]])
+    if split is not None:
+        same &= split[edge_faces[:, 0]] == split[edge_faces[:, 1]]
     region = _components(len(r1), edge_faces[same])
     prob = np.zeros(int(region.max()) + 1)
     prob[region] = np.maximum(p1[r1], p2[r2])
@@ -200,7 +204,8 @@ def _union_labels(first: tuple, second: tuple, edge_faces: np.ndarray) -> tuple[
 
 
 def _hybrid_labels(first: tuple, second: tuple, rough: np.ndarray, areas: np.ndarray,
-                   edge_faces: np.ndarray, own: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   edge_faces: np.ndarray, own: tuple | None = None,
+                   lips: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The roughness vote's and the crease regions' (regions (F,), likelihoods (R,)) overlaid as
     in `_union_labels`, except that a piece only the roughness vote calls fracture keeps the
     crease regions' (low) likelihood unless it is at least `HYBRID_RATIO` times rougher than the
@@ -214,10 +219,12 @@ def _hybrid_labels(first: tuple, second: tuple, rough: np.ndarray, areas: np.nda
     least `HYBRID_OWN_MIN_FACES` faces whose roughness, measured with the rings kept inside it, is
     below `HYBRID_OWN_RATIO` times the floor keeps the crease regions' likelihood too. The rings of
     `rough` reach over gentle creases: a vessel's flat bottom took the curvature of the wall it meets
-    (4.0-4.3x the floor on corpus vessel-clean) though flat.
+    (4.0-4.3x the floor on corpus vessel-clean) though flat. `lips` (F,) bool: a piece mostly of a
+    thin wall's lip faces (`segment_cues.wall_end_labels`) keeps it too: the vote measures a rounded
+    lip's curvature as roughness.
     Returns (F,) int64 pieces, (P,) likelihoods."""
     (r1, p1), (r2, p2) = first, second
-    region, prob = _union_labels(first, second, edge_faces)
+    region, prob = _union_labels(first, second, edge_faces, lips)
     both_skin = (p1[r1] <= 0.5) & (p2[r2] <= 0.5)
     floor = HYBRID_FLOOR_DEG
     if both_skin.any():
@@ -237,6 +244,10 @@ def _hybrid_labels(first: tuple, second: tuple, rough: np.ndarray, areas: np.nda
             np.bincount(region, weights=areas, minlength=n), 1e-300)
         big = np.bincount(region, minlength=n) >= HYBRID_OWN_MIN_FACES
         mean_rough = np.where(big & (own_rough < HYBRID_OWN_RATIO * floor), 0.0, mean_rough)
+    if lips is not None:
+        lip_share = np.bincount(region, weights=areas * lips, minlength=n) / np.maximum(
+            np.bincount(region, weights=areas, minlength=n), 1e-300)
+        mean_rough = np.where(lip_share > 0.5, 0.0, mean_rough)
     regions_prob = np.zeros(n)
     regions_prob[region] = p2[r2]
     return region, np.where(only_rough & (mean_rough < HYBRID_RATIO * floor), regions_prob, prob)

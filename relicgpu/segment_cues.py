@@ -425,13 +425,14 @@ def cue_labels(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, are
     topo : the mesh's `Topology`
     edge_angle : (E,) degrees
     params : `Params`
-    details : also return whether the wall's ends decided (`wall_end_labels`)
+    details : also return whether the wall's ends decided (`wall_end_labels`) and the lip faces
 
     Returns
     -------
     region : (F,) int64 region id per face, 0..R-1
     prob : (R,) fracture likelihood in [0, 1] (> 0.5: fracture)
     ends : bool, only with `details`: the labels are the wall's ends less lips, not the crease regions'
+    lips : (F,) bool or None (not a dense thin wall), only with `details`: faces of the wall's lips
     """
     region = crease_regions(normals, areas, topo, edge_angle)
     cues = region_cues(vertices, normals, areas, topo, edge_angle, region)
@@ -444,13 +445,11 @@ def cue_labels(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, are
         size = float(np.linalg.norm(centers.max(0) - centers.min(0)))  # as `wall_thickness` measures it
         band = band_shape(centers, areas, region) / max(size, 1e-300)
     prob = region_fracture_prob(cues, skin, seed, params, wall, band)
-    ends = False
+    ends, lips = False, None
     if wall < params.region_thin_wall and len(faces) >= WALL_END_MIN_FACES:
         size = float(np.linalg.norm(centers.max(0) - centers.min(0)))
-        pieces, piece_prob = wall_end_labels(centers, normals, areas, topo, region, prob, wall * size)
-        ends = pieces is not region
-        region, prob = pieces, piece_prob
-    return (region, prob, ends) if details else (region, prob)
+        region, prob, lips, ends = wall_end_labels(centers, normals, areas, topo, region, prob, wall * size)
+    return (region, prob, ends, lips) if details else (region, prob)
 
 
 def wall_end_alignment(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, wall: float) -> np.ndarray:
@@ -498,9 +497,10 @@ def end_lips(centers: np.ndarray, areas: np.ndarray, topo: Topology, end: np.nda
 
 
 def wall_end_labels(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, topo: Topology, region: np.ndarray,
-                    prob: np.ndarray, wall: float) -> tuple[np.ndarray, np.ndarray]:
+                    prob: np.ndarray, wall: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """Fracture on a dense thin wall: the crease regions' where their fracture covers most of the
-    wall's ends (`WALL_END_COVERED` of the area of the ends less lips), else the wall's ends
+    wall's ends (`WALL_END_COVERED` of the area of the ends less lips), less regions mostly of lip
+    faces (a lip rounded a little, its rims too soft for `LIP_*`), else the wall's ends
     (`wall_end_alignment`) less its lips (`end_lips`).
 
     A rescan rounds the wall's end over a face or two (corpus vessel-noisy: edges 0.7-1.4 walls
@@ -519,8 +519,11 @@ def wall_end_labels(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray,
 
     Returns
     -------
-    pieces : (F,) int64, the crease regions split where a face's end / lip class changes
+    pieces : (F,) int64, the crease regions, or, where the ends decide, split where a face's end /
+        lip class changes
     prob : (P,) fracture likelihood per piece (> 0.5: fracture)
+    lips : (F,) bool, the lip faces
+    ends : whether the ends decided
     """
     align = wall_end_alignment(centers, normals, areas, wall)
     p_end = 1.0 / (1.0 + np.exp(-np.clip((WALL_END_ALIGN - align) / WALL_END_SOFTNESS, -50, 50)))
@@ -531,7 +534,11 @@ def wall_end_labels(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                                LIP_GROW_RINGS) > 0)
     ends = end & ~lip
     if areas[ends & (prob[region] > 0.5)].sum() >= WALL_END_COVERED * areas[ends].sum():
-        return region, prob
+        # the crease regions see the band; a region mostly of lip faces is skin (a lip rounded a little)
+        n_reg = len(prob)
+        lip_share = np.bincount(region, weights=areas * lip, minlength=n_reg) / np.maximum(
+            np.bincount(region, weights=areas, minlength=n_reg), 1e-300)
+        return region, np.where(lip_share > 0.5, np.minimum(prob, 1.0 - lip_share), prob), lip, False
     face_p = np.where(lip, 0.0, p_end)
     frac = face_p > 0.5
     same = (region[e0] == region[e1]) & (frac[e0] == frac[e1]) & (lip[e0] == lip[e1])
@@ -539,7 +546,7 @@ def wall_end_labels(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     n = int(pieces.max()) + 1
     piece_p = np.bincount(pieces, weights=areas * face_p, minlength=n) / np.maximum(
         np.bincount(pieces, weights=areas, minlength=n), 1e-300)
-    return pieces, piece_p
+    return pieces, piece_p, lip, True
 
 
 def wall_thickness(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, skin: np.ndarray,
