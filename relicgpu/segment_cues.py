@@ -13,9 +13,14 @@ creases:
 3. `region_fracture_prob`: regions outside the grown skin are fracture (bounded by creases too
    sharp to grow over), unless curved and as smooth as the skin (a vessel's inner face), or as
    smooth as the skin where the break is evidently rough (a slab's other sides), or, on a thin
-   wall (`wall_thickness`), smooth and wider than a few walls (a vessel's bottom). Grown regions
-   are fracture where the break is evidently rough and they are too. Logistic steps make it a
-   graded likelihood, > 0.5 exactly on the fracture.
+   wall (`wall_thickness`), smooth and wider than a few walls (a vessel's bottom), or a lip: a long
+   planar band curving within its plane (`band_shape`, `LIP_*`). Grown regions are fracture where
+   the break is evidently rough and they are too. Logistic steps make it a graded likelihood,
+   > 0.5 exactly on the fracture.
+4. `wall_end_labels` (dense thin walls): where a rescan rounded the wall's ends so that the crease
+   regions miss them, the fracture is the wall's ends (faces turned across the wall's axis,
+   `wall_end_alignment`) less the lips (`end_lips`); where the crease regions cover the ends they
+   stay, less regions mostly of lip faces. docs/benchmarks.md, "Vessels: lips and breaks".
 
 Measured (scripts/bench_segment.py; thresholds fitted with corpus smooth-noisy, vessel-coarse and
 the Blender cylinder held out) in the commit message that introduced the "regions" method.
