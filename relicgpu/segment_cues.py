@@ -85,6 +85,16 @@ END_LIP_BEND_WALLS = 2.5  # ... curved by more than this many walls (lips 4-16, 
 END_LIP_FLAT_WALLS = 0.1  # ... and within this many walls of one plane (noisy lips 0.02-0.1)
 WALL_END_COVERED = 0.72  # the crease regions are kept where their fracture covers this share of the ends
 
+# Pieces that are nearly all fracture (`skin_from_seeds`): chosen on corpus voronoi-clean / voronoi-coarse
+# (8 pieces, seeds 0-2, 1500 faces), the Blender sets held out. Their cut facets are exact planes
+# (median normal deviation 0.00-0.01 deg, roughness 0.00-0.01 deg); every scanned or curved skin region
+# is rougher than 0.05 deg (a block's faces 0.5) but a jar's flat bottom, which is exact too.
+PLANE_DEV_DEG = 0.05  # a region is one exact plane when its faces' median angle to its mean normal ...
+PLANE_ROUGH_DEG = 0.05  # ... and its roughness are below these (degrees)
+NONPLANAR_MIN_SHARE = 0.01  # a skin of exact planes is grown again from regions that are not, of at least this area share
+BOX_MIN_SHARE = 0.05  # facets of at least this share that meet at right angles or face opposite ways ...
+BOX_DEG = 2.0  # ... within this many degrees make a polyhedral piece a box's (skin kept), else all fracture
+
 CUE_NAMES = ("log_share", "largest", "log_rough_ratio", "log_width_edges", "log_width_size", "log_unflatness",
              "rim_sharp_share", "rim_mean_angle")
 
@@ -158,6 +168,15 @@ class RegionCues:
     values: np.ndarray  # (R, len(CUE_NAMES)) float
     area: np.ndarray  # (R,) region areas
     roughness_deg: np.ndarray  # (R,) area-weighted mean angle between a face's normal and its 1-ring's
+    plane_dev_deg: np.ndarray | None = None  # (R,) area-weighted median angle between a face's normal and the region's mean
+    normal: np.ndarray | None = None  # (R, 3) unit area-weighted mean normals
+
+    def exact_plane(self) -> np.ndarray:
+        """(R,) bool: regions that are one exact plane (`PLANE_DEV_DEG`, `PLANE_ROUGH_DEG`), as a
+        computed cut is and a scanned or curved skin is not."""
+        if self.plane_dev_deg is None:
+            return np.zeros(len(self.area), bool)
+        return (self.plane_dev_deg < PLANE_DEV_DEG) & (self.roughness_deg < PLANE_ROUGH_DEG)
 
     def rough_ratio(self, ref: int, floor_deg: float) -> np.ndarray:
         """(R,) roughness relative to region `ref`'s (the noise floor), that taken at least `floor_deg`."""
@@ -206,7 +225,21 @@ def region_cues(vertices: np.ndarray, normals: np.ndarray, areas: np.ndarray, to
         np.log(width / h + 1e-3), np.log(width / max(size, 1e-12) + 1e-6),
         np.log(1 - np.minimum(flatness, 1) + 1e-4),
         rim_sharp / np.maximum(rim_len, 1e-12), rim_angle / np.maximum(rim_len, 1e-12)], 1)
-    return RegionCues(values, area, rough)
+    unit_mean = mean_normal / np.maximum(np.linalg.norm(mean_normal, axis=1), 1e-300)[:, None]
+    dev = np.degrees(np.arccos(np.clip(np.einsum("fd,fd->f", normals, unit_mean[region]), -1, 1)))
+    return RegionCues(values, area, rough, _region_weighted_median(dev, areas, region, n_reg), unit_mean)
+
+
+def _region_weighted_median(x: np.ndarray, w: np.ndarray, region: np.ndarray, n_reg: int) -> np.ndarray:
+    """(R,) the w-weighted median of x (F,) within each region."""
+    order = np.lexsort((x, region))
+    r, xs, cum = region[order], x[order], np.cumsum(w[order])
+    start = np.searchsorted(r, np.arange(n_reg))
+    end = np.searchsorted(r, np.arange(n_reg), side="right")
+    base = np.where(start > 0, cum[np.maximum(start - 1, 0)], 0.0)
+    half = base + 0.5 * (cum[np.maximum(end - 1, 0)] - base)
+    pick = np.clip(np.searchsorted(cum, half), start, np.maximum(end - 1, start))
+    return np.where(end > start, xs[np.minimum(pick, len(xs) - 1)], 0.0)
 
 
 def _region_roughness(normals, areas, inside_edges, region, region_area) -> np.ndarray:
@@ -318,6 +351,12 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
     `region_isolated_weight` of its area. The merge threshold is
     `region_merge_deg` plus `region_merge_noise` times the seed's roughness (the mesh's own noise floor).
 
+    Where the skin so chosen is all exact planes (`RegionCues.exact_plane`: a computed cut, such
+    as a Voronoi cell's facet) it is grown again from the largest regions that are not (at least
+    `NONPLANAR_MIN_SHARE` of the area: a scanned or curved skin); where there are none, the piece
+    is a polyhedron: all fracture (an empty skin, an inner cell of a many-piece break) unless two
+    of its large facets meet at a right angle or face opposite ways (`box_facets`: a box's skin).
+
     Parameters
     ----------
     region : (F,) int region id per face, 0..R-1
@@ -329,16 +368,32 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
 
     Returns
     -------
-    skin : (R,) bool
-    seed : the region the skin grew from
+    skin : (R,) bool, possibly empty
+    seed : the region the skin grew from (the largest region where the skin is empty)
     """
     share = cues.area / max(cues.area.sum(), 1e-300)
-    sharp_all_round = cues.values[:, CUE_NAMES.index("rim_sharp_share")] >= params.region_sharp_rim
     relay = share >= params.region_relay_share
     order = np.argsort(-share)
-    best, best_seed, best_score = None, int(order[0]), -1.0
-    for seed in order[:seeds]:
-        if seed != order[0] and not relay[seed]:
+    best, best_seed = _best_seed(region, topo, turn, cues, params, order[:seeds], relay)
+    plane = cues.exact_plane()
+    if not plane[best].all():
+        return best, best_seed
+    other = np.flatnonzero(~plane & (share >= NONPLANAR_MIN_SHARE))
+    if len(other):
+        return _best_seed(region, topo, turn, cues, params, other[np.argsort(-share[other])][:seeds], relay)
+    if box_facets(cues, plane):
+        return best, best_seed
+    return np.zeros(len(share), bool), int(order[0])
+
+
+def _best_seed(region, topo, turn, cues, params, candidates, relay) -> tuple[np.ndarray, int]:
+    """`skin_from_seeds`' choice among `candidates` (region ids, largest first; after the first, only
+    relay regions): the grown skin (R,) bool of most (discounted) area and its seed."""
+    share = cues.area / max(cues.area.sum(), 1e-300)
+    sharp_all_round = cues.values[:, CUE_NAMES.index("rim_sharp_share")] >= params.region_sharp_rim
+    best, best_seed, best_score = None, int(candidates[0]), -1.0
+    for seed in candidates:
+        if seed != candidates[0] and not relay[seed]:
             break
         merge_deg = params.region_merge_deg + params.region_merge_noise * cues.roughness_deg[seed]
         rough = cues.rough_ratio(seed, params.region_noise_floor_deg)
@@ -350,6 +405,20 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
         if score > best_score:
             best, best_seed, best_score = skin, int(seed), float(score)
     return best, best_seed
+
+
+def box_facets(cues: RegionCues, plane: np.ndarray) -> bool:
+    """Whether two exactly planar regions of at least `BOX_MIN_SHARE` of the area meet at a right
+    angle or face opposite ways, within `BOX_DEG`: a box's faces do, a Voronoi cell's facets
+    rarely (they meet at random angles)."""
+    share = cues.area / max(cues.area.sum(), 1e-300)
+    idx = np.flatnonzero(plane & (share >= BOX_MIN_SHARE))
+    if len(idx) < 2 or cues.normal is None:
+        return False
+    cos = cues.normal[idx] @ cues.normal[idx].T
+    pair = np.triu(np.ones_like(cos, bool), 1)
+    tol = np.sin(np.radians(BOX_DEG))
+    return bool(((np.abs(cos) < tol) | (cos < -np.cos(np.radians(BOX_DEG))))[pair].any())
 
 
 def region_fracture_prob(cues: RegionCues, skin: np.ndarray, seed: int, params: Params,
