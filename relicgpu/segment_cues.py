@@ -93,7 +93,7 @@ PLANE_DEV_DEG = 0.05  # a region is one exact plane when its faces' median angle
 PLANE_ROUGH_DEG = 0.05  # ... and its roughness are below these (degrees)
 NONPLANAR_MIN_SHARE = 0.01  # a skin of exact planes is grown again from regions that are not, of at least this area share
 BOX_MIN_SHARE = 0.05  # facets of at least this share that meet at right angles or face opposite ways ...
-BOX_DEG = 2.0  # ... within this many degrees make a polyhedral piece a box's (skin kept), else all fracture
+BOX_DEG = 0.5  # ... within this many degrees (a CAD box: exactly; at 2 deg 2 of 6 random cut cells of a box met so) are a box's skin faces; with none a polyhedral piece is all fracture
 
 CUE_NAMES = ("log_share", "largest", "log_rough_ratio", "log_width_edges", "log_width_size", "log_unflatness",
              "rim_sharp_share", "rim_mean_angle")
@@ -354,8 +354,8 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
     Where the skin so chosen is all exact planes (`RegionCues.exact_plane`: a computed cut, such
     as a Voronoi cell's facet) it is grown again from the largest regions that are not (at least
     `NONPLANAR_MIN_SHARE` of the area: a scanned or curved skin); where there are none, the piece
-    is a polyhedron: all fracture (an empty skin, an inner cell of a many-piece break) unless two
-    of its large facets meet at a right angle or face opposite ways (`box_facets`: a box's skin).
+    is a polyhedron: all fracture (an empty skin, an inner cell of a many-piece break) but for large
+    facets that meet another at a right angle or face opposite ways (`box_facets`: a box's skin).
 
     Parameters
     ----------
@@ -381,9 +381,15 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
     other = np.flatnonzero(~plane & (share >= NONPLANAR_MIN_SHARE))
     if len(other):
         return _best_seed(region, topo, turn, cues, params, other[np.argsort(-share[other])][:seeds], relay)
-    if box_facets(cues, plane):
-        return best, best_seed
-    return np.zeros(len(share), bool), int(order[0])
+    box = box_facets(cues, plane)
+    if not box.any():
+        return np.zeros(len(share), bool), int(order[0])
+    skin = box.copy()
+    for seed in np.flatnonzero(box):  # a box's faces and what they grow over (a rounded box's edges)
+        merge_deg = params.region_merge_deg + params.region_merge_noise * cues.roughness_deg[seed]
+        skin |= grow_skin(region, topo, turn, int(seed), cues.rough_ratio(seed, params.region_noise_floor_deg),
+                          merge_deg, params.region_rough_max, relay)
+    return skin, int(np.flatnonzero(box)[np.argmax(share[box])])
 
 
 def _best_seed(region, topo, turn, cues, params, candidates, relay) -> tuple[np.ndarray, int]:
@@ -407,18 +413,19 @@ def _best_seed(region, topo, turn, cues, params, candidates, relay) -> tuple[np.
     return best, best_seed
 
 
-def box_facets(cues: RegionCues, plane: np.ndarray) -> bool:
-    """Whether two exactly planar regions of at least `BOX_MIN_SHARE` of the area meet at a right
-    angle or face opposite ways, within `BOX_DEG`: a box's faces do, a Voronoi cell's facets
-    rarely (they meet at random angles)."""
+def box_facets(cues: RegionCues, plane: np.ndarray) -> np.ndarray:
+    """(R,) bool: exactly planar regions of at least `BOX_MIN_SHARE` of the area that meet another
+    such at a right angle or face opposite ways, within `BOX_DEG`: a box's faces do, a Voronoi
+    cell's facets rarely (they meet at random angles)."""
     share = cues.area / max(cues.area.sum(), 1e-300)
+    out = np.zeros(len(share), bool)
     idx = np.flatnonzero(plane & (share >= BOX_MIN_SHARE))
     if len(idx) < 2 or cues.normal is None:
-        return False
+        return out
     cos = cues.normal[idx] @ cues.normal[idx].T
-    pair = np.triu(np.ones_like(cos, bool), 1)
     tol = np.sin(np.radians(BOX_DEG))
-    return bool(((np.abs(cos) < tol) | (cos < -np.cos(np.radians(BOX_DEG))))[pair].any())
+    out[idx] = ((np.abs(cos) < tol) | (cos < -np.cos(np.radians(BOX_DEG)))).any(1)
+    return out
 
 
 def region_fracture_prob(cues: RegionCues, skin: np.ndarray, seed: int, params: Params,
