@@ -252,3 +252,38 @@ def test_a_rounded_lip_is_skin_and_the_cut_fracture():
     regions = segment(v, f, Params(segmentation="regions"), 1.0, ref)
     recall, precision = _area_recall_precision(v, f, regions.fracture_faces, cut)
     assert precision > 0.8  # measured 0.846
+
+
+def _box_cell(seed, planes=9):
+    """A box cut by `planes` random planes near its centre: an inner cell of a many-piece break,
+    every face a cut."""
+    import manifold3d as m3d
+    rng = np.random.default_rng(seed)
+    m = m3d.Manifold.cube([2.0, 2.0, 2.0], center=True)
+    for _ in range(planes):
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        m = m.trim_by_plane(list(-d), -float(rng.uniform(0.35, 0.6)))
+    mesh = m.refine_to_length(0.12).to_mesh()
+    return np.asarray(mesh.vert_properties[:, :3], np.float64), np.asarray(mesh.tri_verts, np.int64)
+
+
+def test_a_piece_that_is_all_cut_facets_is_all_fracture():
+    # an inner Voronoi-like cell: the largest facet is no skin (it was: 75% fracture called)
+    v, f = _box_cell(0)
+    assert np.all(np.ptp(v, 0) < 1.9)  # no face of the box is left
+    for method in ("regions", "hybrid"):
+        seg = segment(v, f, Params(segmentation=method), 1.0, ref)
+        assert seg.areas[seg.fracture_faces].sum() > 0.97 * seg.areas.sum()
+
+
+def test_a_box_corner_keeps_its_faces_skin_and_its_cut_fracture():
+    import manifold3d as m3d
+    d = np.array([1.0, 0.3, 0.5]) / np.linalg.norm([1.0, 0.3, 0.5])
+    mesh = m3d.Manifold.cube([2.0, 2.0, 2.0], center=True).trim_by_plane(list(d), 0.3).refine_to_length(0.12).to_mesh()
+    v, f = np.asarray(mesh.vert_properties[:, :3], np.float64), np.asarray(mesh.tri_verts, np.int64)
+    seg = segment(v, f, Params(segmentation="regions"), 1.0, ref)
+    cut = np.abs(v[f].mean(1) @ d - 0.3) < 1e-4
+    a, frac = seg.areas, seg.fracture_faces
+    assert a[cut & frac].sum() > 0.95 * a[cut].sum()
+    assert a[~cut & frac].sum() < 0.1 * a[~cut].sum()
