@@ -86,11 +86,14 @@ END_LIP_FLAT_WALLS = 0.1  # ... and within this many walls of one plane (noisy l
 WALL_END_COVERED = 0.72  # the crease regions are kept where their fracture covers this share of the ends
 
 # Pieces that are nearly all fracture (`skin_from_seeds`): chosen on corpus voronoi-clean / voronoi-coarse
-# (8 pieces, seeds 0-2, 1500 faces), the Blender sets held out. Their cut facets are exact planes
-# (median normal deviation 0.00-0.01 deg, roughness 0.00-0.01 deg); every scanned or curved skin region
-# is rougher than 0.05 deg (a block's faces 0.5) but a jar's flat bottom, which is exact too.
-PLANE_DEV_DEG = 0.05  # a region is one exact plane when its faces' median angle to its mean normal ...
-PLANE_ROUGH_DEG = 0.05  # ... and its roughness are below these (degrees)
+# (8 pieces, seeds 0-2, 1500 faces) and random cut cells of a box, the Blender sets held out. Their cut
+# facets are exact planes (a region: one facet, or a few met at a shallow angle); a curved or scanned
+# skin is not, a rounded block's face is one plane and its rounded rim (plane cover 0.71-0.97 in
+# voronoi-clean seed 1), a jar's flat bottom is an exact plane too.
+PLANE_EDGE_DEG = 0.05  # faces meeting flatter than this (degrees) are one exact planar patch ...
+PLANE_PATCH_SHARE = 0.05  # ... counted where it holds at least this share of its region's area ...
+PLANE_PATCH_FACES = 3  # ... and this many faces (a coarse curved skin's quads are two coplanar triangles) ...
+PLANE_COVER = 0.98  # ... and a region is made of exact planes where such patches cover this share of it
 NONPLANAR_MIN_SHARE = 0.01  # a skin of exact planes is grown again from regions that are not, of at least this area share
 BOX_MIN_SHARE = 0.05  # facets of at least this share that meet at right angles or face opposite ways ...
 BOX_DEG = 0.5  # ... within this many degrees (a CAD box: exactly; at 2 deg 2 of 6 random cut cells of a box met so) are a box's skin faces; with none a polyhedral piece is all fracture
@@ -168,15 +171,15 @@ class RegionCues:
     values: np.ndarray  # (R, len(CUE_NAMES)) float
     area: np.ndarray  # (R,) region areas
     roughness_deg: np.ndarray  # (R,) area-weighted mean angle between a face's normal and its 1-ring's
-    plane_dev_deg: np.ndarray | None = None  # (R,) area-weighted median angle between a face's normal and the region's mean
-    normal: np.ndarray | None = None  # (R, 3) unit area-weighted mean normals
+    plane_cover: np.ndarray | None = None  # (R,) area share in exact planar patches (`PLANE_EDGE_DEG`, `PLANE_PATCH_SHARE`)
+    normal: np.ndarray | None = None  # (R, 3) unit normal of each region's largest exact planar patch
 
     def exact_plane(self) -> np.ndarray:
-        """(R,) bool: regions that are one exact plane (`PLANE_DEV_DEG`, `PLANE_ROUGH_DEG`), as a
-        computed cut is and a scanned or curved skin is not."""
-        if self.plane_dev_deg is None:
+        """(R,) bool: regions made of a few exact planes (`PLANE_COVER`), as a computed cut is (one
+        facet, or a few met at a shallow angle) and a scanned or curved skin is not."""
+        if self.plane_cover is None:
             return np.zeros(len(self.area), bool)
-        return (self.plane_dev_deg < PLANE_DEV_DEG) & (self.roughness_deg < PLANE_ROUGH_DEG)
+        return self.plane_cover >= PLANE_COVER
 
     def rough_ratio(self, ref: int, floor_deg: float) -> np.ndarray:
         """(R,) roughness relative to region `ref`'s (the noise floor), that taken at least `floor_deg`."""
@@ -225,21 +228,16 @@ def region_cues(vertices: np.ndarray, normals: np.ndarray, areas: np.ndarray, to
         np.log(width / h + 1e-3), np.log(width / max(size, 1e-12) + 1e-6),
         np.log(1 - np.minimum(flatness, 1) + 1e-4),
         rim_sharp / np.maximum(rim_len, 1e-12), rim_angle / np.maximum(rim_len, 1e-12)], 1)
-    unit_mean = mean_normal / np.maximum(np.linalg.norm(mean_normal, axis=1), 1e-300)[:, None]
-    dev = np.degrees(np.arccos(np.clip(np.einsum("fd,fd->f", normals, unit_mean[region]), -1, 1)))
-    return RegionCues(values, area, rough, _region_weighted_median(dev, areas, region, n_reg), unit_mean)
-
-
-def _region_weighted_median(x: np.ndarray, w: np.ndarray, region: np.ndarray, n_reg: int) -> np.ndarray:
-    """(R,) the w-weighted median of x (F,) within each region."""
-    order = np.lexsort((x, region))
-    r, xs, cum = region[order], x[order], np.cumsum(w[order])
-    start = np.searchsorted(r, np.arange(n_reg))
-    end = np.searchsorted(r, np.arange(n_reg), side="right")
-    base = np.where(start > 0, cum[np.maximum(start - 1, 0)], 0.0)
-    half = base + 0.5 * (cum[np.maximum(end - 1, 0)] - base)
-    pick = np.clip(np.searchsorted(cum, half), start, np.maximum(end - 1, start))
-    return np.where(end > start, xs[np.minimum(pick, len(xs) - 1)], 0.0)
+    # exact planar patches: faces joined across edges flatter than PLANE_EDGE_DEG inside the region
+    patch = _components(len(areas), topo.edge_faces[inside & (edge_angle < PLANE_EDGE_DEG)])
+    patch_area = np.bincount(patch, weights=areas)
+    big = (patch_area[patch] >= PLANE_PATCH_SHARE * area[region]) & (np.bincount(patch)[patch] >= PLANE_PATCH_FACES)
+    cover = np.bincount(region, weights=areas * big, minlength=n_reg) / np.maximum(area, 1e-300)
+    # each region's main plane: the normal of its largest patch (a rounded rim tilts the mean normal)
+    main = np.full(n_reg, -1)
+    order = np.argsort(patch_area[patch], kind="stable")
+    main[region[order]] = order  # the last write per region is a face of its largest patch
+    return RegionCues(values, area, rough, cover, normals[main])
 
 
 def _region_roughness(normals, areas, inside_edges, region, region_area) -> np.ndarray:
@@ -352,10 +350,12 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
     `region_merge_deg` plus `region_merge_noise` times the seed's roughness (the mesh's own noise floor).
 
     Where the skin so chosen is all exact planes (`RegionCues.exact_plane`: a computed cut, such
-    as a Voronoi cell's facet) it is grown again from the largest regions that are not (at least
-    `NONPLANAR_MIN_SHARE` of the area: a scanned or curved skin); where there are none, the piece
-    is a polyhedron: all fracture (an empty skin, an inner cell of a many-piece break) but for large
-    facets that meet another at a right angle or face opposite ways (`box_facets`: a box's skin).
+    as a Voronoi cell's facet) and grew over no large region, the skin is the piece's large exact
+    planes that meet another at a right angle or face opposite ways (`box_facets`: a box's faces,
+    a rounded block's) and what they grow over; where there are none, it is grown again from the
+    largest regions that are not exact planes (at least `NONPLANAR_MIN_SHARE` of the area: a
+    scanned or curved skin); where there are none either, the piece is all fracture (an empty
+    skin: an inner cell of a many-piece break).
 
     Parameters
     ----------
@@ -376,20 +376,20 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
     order = np.argsort(-share)
     best, best_seed = _best_seed(region, topo, turn, cues, params, order[:seeds], relay)
     plane = cues.exact_plane()
-    if not plane[best].all():
-        return best, best_seed
+    if not plane[best].all() or share[best].sum() >= share[best_seed] + params.region_relay_share:
+        return best, best_seed  # not all exact planes, or grown over a large region (a faceted skin)
+    box = box_facets(cues, plane)
+    if box.any():  # a box's faces and what they grow over (a rounded box's edges)
+        skin = box.copy()
+        for seed in np.flatnonzero(box):
+            merge_deg = params.region_merge_deg + params.region_merge_noise * cues.roughness_deg[seed]
+            skin |= grow_skin(region, topo, turn, int(seed), cues.rough_ratio(seed, params.region_noise_floor_deg),
+                              merge_deg, params.region_rough_max, relay)
+        return skin, int(np.flatnonzero(box)[np.argmax(share[box])])
     other = np.flatnonzero(~plane & (share >= NONPLANAR_MIN_SHARE))
     if len(other):
         return _best_seed(region, topo, turn, cues, params, other[np.argsort(-share[other])][:seeds], relay)
-    box = box_facets(cues, plane)
-    if not box.any():
-        return np.zeros(len(share), bool), int(order[0])
-    skin = box.copy()
-    for seed in np.flatnonzero(box):  # a box's faces and what they grow over (a rounded box's edges)
-        merge_deg = params.region_merge_deg + params.region_merge_noise * cues.roughness_deg[seed]
-        skin |= grow_skin(region, topo, turn, int(seed), cues.rough_ratio(seed, params.region_noise_floor_deg),
-                          merge_deg, params.region_rough_max, relay)
-    return skin, int(np.flatnonzero(box)[np.argmax(share[box])])
+    return np.zeros(len(share), bool), int(order[0])
 
 
 def _best_seed(region, topo, turn, cues, params, candidates, relay) -> tuple[np.ndarray, int]:
