@@ -28,6 +28,16 @@ ROUGHNESS_NEIGHBOURS = 6
 # roughness, not ROUGH_SPREADS) is tried when the first finds no fit: a thin wall's narrow break
 # drowns in the skin points the first pick holds.
 STRICT_SPREADS = 2.0
+# Without scanned normals the pick (likelihood >= 0.5) holds two to three skin points for each
+# fracture point on a slab (precision 0.24-0.36 at recall ~0.9; a rim's skin reads rough to small
+# plane fits), and the fine fit's optimum leaned 1.5-3 degrees on them. Each fracture sample
+# point weighs its likelihood to this power in the votes and ICP (as a mesh's sample weighs its
+# likelihood): the picks at likelihood >= 0.8 are 0.42-0.58 fracture. Fitted on synthetic pairs
+# 0-9 (scripts/bench_clouds.py --modes none): power 0 (a hard pick): 6/10 right, 1 wrong
+# accepted (slab seeds 0, 1 at 2.77 and 1.60 deg); 0.5: 6/10, 1 wrong (3.42 deg); 1: 7/10, none
+# wrong (1.29, 1.48 deg); 2: 7/10, none wrong (0.58, 1.21 deg); 4: 4/10 (votes and screening
+# starved: gross misses). Scanned normals pick well (precision 0.61-0.78): not weighed.
+LIKELIHOOD_POWER = 2.0
 
 
 # Crease-bounded regions of a cloud: neighbours (CREASE_NEIGHBOURS nearest, nearer than
@@ -128,10 +138,13 @@ def cloud_likelihood(points: np.ndarray, given_normals: np.ndarray | None, sprea
 
 
 def fracture_points(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
-                    spreads: float | None = None) -> np.ndarray:
+                    spreads: float | None = None, likelihood: np.ndarray | None = None) -> np.ndarray:
     """Indices of a cloud's fracture points: those of fracture likelihood >= 0.5 (`cloud_likelihood`
-    of the (N, 3) points and optional (N, 3) normals), at most params.icp_points spread evenly."""
-    fracture = np.flatnonzero(cloud_likelihood(points, given_normals, spreads) >= 0.5)
+    of the (N, 3) points and optional (N, 3) normals, unless given), at most params.icp_points
+    spread evenly."""
+    if likelihood is None:
+        likelihood = cloud_likelihood(points, given_normals, spreads)
+    fracture = np.flatnonzero(likelihood >= 0.5)
     return fracture[even_subsample(points[fracture], params.icp_points)]
 
 
@@ -154,11 +167,15 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
     """
     points = np.asarray(points, np.float64)
     normals = estimate_normals(points, given_normals)
-    fracture = fracture_points(points, given_normals, params, spreads)
+    likelihood = cloud_likelihood(points, given_normals, spreads)
+    fracture = fracture_points(points, given_normals, params, spreads, likelihood)
     surf = even_subsample(points, 2 * params.icp_points)
     plane_normals = smoothed_normals(points[fracture], normals[fracture], params.ppf_normal_radius * scale)
+    weight = None
+    if given_normals is None and LIKELIHOOD_POWER > 0:
+        weight = likelihood[fracture] ** LIKELIHOOD_POWER
     return SurfaceSample(points[fracture], np.zeros(len(fracture), np.int64), normals[fracture], points[surf],
-                         normals[surf], plane_normals)
+                         normals[surf], plane_normals, fracture_weight=weight)
 
 
 def fracture_roughness(points: np.ndarray, given_normals: np.ndarray | None, params: Params) -> float:
