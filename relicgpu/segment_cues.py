@@ -85,18 +85,19 @@ END_LIP_BEND_WALLS = 2.5  # ... curved by more than this many walls (lips 4-16, 
 END_LIP_FLAT_WALLS = 0.1  # ... and within this many walls of one plane (noisy lips 0.02-0.1)
 WALL_END_COVERED = 0.72  # the crease regions are kept where their fracture covers this share of the ends
 
-# Pieces that are nearly all fracture (`skin_from_seeds`): chosen on corpus voronoi-clean / voronoi-coarse
-# (8 pieces, seeds 0-2, 1500 faces) and random cut cells of a box, the Blender sets held out. Their cut
-# facets are exact planes (a region: one facet, or a few met at a shallow angle); a curved or scanned
-# skin is not, a rounded block's face is one plane and its rounded rim (plane cover 0.71-0.97 in
-# voronoi-clean seed 1), a jar's flat bottom is an exact plane too.
+# Pieces that are nearly all fracture (`skin_from_seeds`): chosen on corpus voronoi/rough/smooth (8 pieces,
+# seeds 0-2, 1500 faces), synth 10-piece breaks (seeds 0-1) and inner cells of a box cut by 12 random
+# planes (seeds 0-59, the 33 with no box face left), the Blender sets held out. Cut facets are exact
+# planes (a region: one facet, or a few met at a shallow angle; patch cover 0.96-1.00 on the cells); a
+# curved or scanned skin is not (cover 0 where it is curved); a rounded block's faces and a jar's flat
+# bottom are exact planes too (cover 0.95-1.00): the block's are found by the box cue.
 PLANE_EDGE_DEG = 0.05  # faces meeting flatter than this (degrees) are one exact planar patch ...
 PLANE_PATCH_SHARE = 0.05  # ... counted where it holds at least this share of its region's area ...
 PLANE_PATCH_FACES = 3  # ... and this many faces (a coarse curved skin's quads are two coplanar triangles) ...
-PLANE_COVER = 0.98  # ... and a region is made of exact planes where such patches cover this share of it
+PLANE_COVER = 0.95  # ... and a region is made of exact planes where such patches cover this share of it (0.98: 29 of 33 cells)
 NONPLANAR_MIN_SHARE = 0.01  # a skin of exact planes is grown again from regions that are not, of at least this area share
-BOX_MIN_SHARE = 0.05  # facets of at least this share that meet at right angles or face opposite ways ...
-BOX_DEG = 0.5  # ... within this many degrees (a CAD box: exactly; at 2 deg 2 of 6 random cut cells of a box met so) are a box's skin faces; with none a polyhedral piece is all fracture
+BOX_MIN_SHARE = 0.05  # exact planes of at least this share that meet another at a right angle or face opposite ways ...
+BOX_DEG = 0.1  # ... within this many degrees (a CAD box: exactly; 0.5: 2 of 33 cells called boxes) are a box's skin faces
 
 CUE_NAMES = ("log_share", "largest", "log_rough_ratio", "log_width_edges", "log_width_size", "log_unflatness",
              "rim_sharp_share", "rim_mean_angle")
@@ -349,13 +350,12 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
     `region_isolated_weight` of its area. The merge threshold is
     `region_merge_deg` plus `region_merge_noise` times the seed's roughness (the mesh's own noise floor).
 
-    Where the skin so chosen is all exact planes (`RegionCues.exact_plane`: a computed cut, such
-    as a Voronoi cell's facet) and grew over no large region, the skin is the piece's large exact
-    planes that meet another at a right angle or face opposite ways (`box_facets`: a box's faces,
-    a rounded block's) and what they grow over; where there are none, it is grown again from the
-    largest regions that are not exact planes (at least `NONPLANAR_MIN_SHARE` of the area: a
-    scanned or curved skin); where there are none either, the piece is all fracture (an empty
-    skin: an inner cell of a many-piece break).
+    Where the skin so chosen is all exact planes (`RegionCues.exact_plane`: computed cuts, such
+    as a Voronoi cell's facets), the skin is the piece's large exact planes that meet another at a
+    right angle or face opposite ways (`box_facets`: a box's faces, a rounded block's) and what they
+    grow over; where there are none, it is grown again from the largest regions that are not exact
+    planes (at least `NONPLANAR_MIN_SHARE` of the area: a scanned or curved skin); where there are
+    none either, the piece is all fracture (an empty skin: an inner cell of a many-piece break).
 
     Parameters
     ----------
@@ -376,8 +376,8 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
     order = np.argsort(-share)
     best, best_seed = _best_seed(region, topo, turn, cues, params, order[:seeds], relay)
     plane = cues.exact_plane()
-    if not plane[best].all() or share[best].sum() >= share[best_seed] + params.region_relay_share:
-        return best, best_seed  # not all exact planes, or grown over a large region (a faceted skin)
+    if not plane[best].all():
+        return best, best_seed
     box = box_facets(cues, plane)
     if box.any():  # a box's faces and what they grow over (a rounded box's edges)
         skin = box.copy()
