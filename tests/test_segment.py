@@ -1,5 +1,6 @@
 """Segmentation: the per-face fracture likelihood and the region cues (issue 16, item 2)."""
 import numpy as np
+import pytest
 
 from relicgpu import synth
 from relicgpu.backends import numpy as ref
@@ -254,7 +255,7 @@ def test_a_rounded_lip_is_skin_and_the_cut_fracture():
     assert precision > 0.8  # measured 0.846
 
 
-def _box_cell(seed, planes=9):
+def _box_cell(seed, planes=12):
     """A box cut by `planes` random planes near its centre: an inner cell of a many-piece break,
     every face a cut."""
     import manifold3d as m3d
@@ -263,15 +264,17 @@ def _box_cell(seed, planes=9):
     for _ in range(planes):
         d = rng.normal(size=3)
         d /= np.linalg.norm(d)
-        m = m.trim_by_plane(list(-d), -float(rng.uniform(0.35, 0.6)))
-    mesh = m.refine_to_length(0.12).to_mesh()
+        m = m.trim_by_plane(list(-d), -float(rng.uniform(0.25, 0.5)))
+    mesh = m.refine_to_length(0.08).to_mesh()
     return np.asarray(mesh.vert_properties[:, :3], np.float64), np.asarray(mesh.tri_verts, np.int64)
 
 
-def test_a_piece_that_is_all_cut_facets_is_all_fracture():
-    # an inner Voronoi-like cell: the largest facet is no skin (it was: 75% fracture called)
-    v, f = _box_cell(0)
-    assert np.all(np.ptp(v, 0) < 1.9)  # no face of the box is left
+@pytest.mark.parametrize("seed", [0, 10])
+def test_a_piece_that_is_all_cut_facets_is_all_fracture(seed):
+    # an inner Voronoi-like cell: the largest facet is no skin (it was: 74-81% fracture called);
+    # seed 10 has three regions of two facets each met at a shallow angle
+    v, f = _box_cell(seed)
+    assert np.abs(v).max() < 0.999  # no face of the box is left
     for method in ("regions", "hybrid"):
         seg = segment(v, f, Params(segmentation=method), 1.0, ref)
         assert seg.areas[seg.fracture_faces].sum() > 0.97 * seg.areas.sum()
