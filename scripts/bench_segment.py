@@ -11,7 +11,7 @@ Usage:
 
     .venv/bin/python scripts/bench_segment.py [--seeds 3] [--only voronoi,vessel] [--methods roughness,hybrid]
 
-Seeds alternate 2 and 4 pieces (synth: 2 and 5). Target: recall >= 0.9 and precision >= 0.8 on every row.
+Seeds alternate 2 and 4 pieces (synth: 2 and 5); --pieces N gives every object N. Target: recall >= 0.9 and precision >= 0.8 on every row.
 """
 import argparse
 import time
@@ -26,19 +26,20 @@ from relicgpu.segment import segment
 HELD_OUT = ("voronoi", "vessel", "real-")  # untouched by the choice of the hybrid thresholds
 
 
-def cases(seeds, synth_noise, only):
+def cases(seeds, synth_noise, only, pieces=0):
     for shape in ("vase", "torso", "slab"):
         for s in range(seeds):
             for noise in synth_noise:
                 yield f"synth-{shape}-noise{noise}", lambda shape=shape, s=s, noise=noise: synth.generate(
-                    shape, pieces=2 if s % 2 == 0 else 5, seed=s, faces=4000, noise=noise)
+                    shape, pieces=pieces or (2 if s % 2 == 0 else 5), seed=s, faces=4000, noise=noise)
     try:
         from relicgpu import corpus
     except ImportError:
         return
     for fam in corpus.FAMILIES:
         for s in range(seeds):
-            yield f"corpus-{fam}", lambda fam=fam, s=s: corpus.generate(fam, pieces=2 if s % 2 == 0 else 4, seed=s)
+            yield f"corpus-{fam}", lambda fam=fam, s=s: corpus.generate(fam, pieces=pieces or (2 if s % 2 == 0 else 4),
+                                                                      seed=s)
     for name in corpus.REALDATA_SETS:
         yield f"real-{name}", lambda name=name: corpus.realdata(name)
 
@@ -50,11 +51,13 @@ def main():
     ap.add_argument("--only", default="")
     ap.add_argument("--methods", default="roughness,regions,union,hybrid")
     ap.add_argument("--verbose", action="store_true")
+    ap.add_argument("--pieces", type=int, default=0,
+                    help="pieces per synth/corpus object (0: alternate 2 and 5 / 2 and 4); many pieces give inner, mostly-fracture pieces")
     a = ap.parse_args()
     only = [x for x in a.only.split(",") if x]
     methods = a.methods.split(",")
     stats = {}
-    for fam, make in cases(a.seeds, [float(x) for x in a.synth_noise.split(",")], only):
+    for fam, make in cases(a.seeds, [float(x) for x in a.synth_noise.split(",")], only, a.pieces):
         if only and not any(o in fam for o in only):
             continue
         try:
