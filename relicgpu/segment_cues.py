@@ -98,6 +98,11 @@ PLANE_COVER = 0.95  # ... and a region is made of exact planes where such patche
 NONPLANAR_MIN_SHARE = 0.01  # a skin of exact planes is grown again from regions that are not, of at least this area share
 BOX_MIN_SHARE = 0.05  # exact planes of at least this share that meet another at a right angle or face opposite ways ...
 BOX_DEG = 0.1  # ... within this many degrees (a CAD box: exactly; 0.5: 2 of 33 cells called boxes) are a box's skin faces
+# A cap (`square_caps`): chosen on Voronoi cells of a 64-sided cylinder (12 cells, seeds 0-2, built in
+# /tmp; the Blender cylinder held out): with the side reseeded, caps were fracture on 9 of 36 pieces, mean precision 0.866; with this 0.932
+CAP_DEG = 1.0  # an exact plane is square to a skin face when their normals are within this of 90 degrees ...
+CAP_SHARE = 0.9  # ... and a cap when so on this share of the skin faces along its shared rim ...
+CAP_MIN_EDGES = 3  # ... of at least this many edges
 
 CUE_NAMES = ("log_share", "largest", "log_rough_ratio", "log_width_edges", "log_width_size", "log_unflatness",
              "rim_sharp_share", "rim_mean_angle")
@@ -341,7 +346,7 @@ def grow_skin(region: np.ndarray, topo: Topology, turn: np.ndarray, seed: int, r
 
 
 def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: RegionCues, params: Params,
-                    seeds: int = 4) -> tuple[np.ndarray, int]:
+                    seeds: int = 4, normals: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """The skin grown (`grow_skin`) from whichever of the largest regions grows the most area.
 
     The largest single region is not always skin: on a coarse CAD mesh one planar cut can outweigh
@@ -354,8 +359,10 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
     as a Voronoi cell's facets), the skin is the piece's large exact planes that meet another at a
     right angle or face opposite ways (`box_facets`: a box's faces, a rounded block's) and what they
     grow over; where there are none, it is grown again from the largest regions that are not exact
-    planes (at least `NONPLANAR_MIN_SHARE` of the area: a scanned or curved skin); where there are
-    none either, the piece is all fracture (an empty skin: an inner cell of a many-piece break).
+    planes (at least `NONPLANAR_MIN_SHARE` of the area: a scanned or curved skin), and exact planes
+    that meet that skin square all along their shared rim join it (`square_caps`, with `normals`:
+    a cylinder's cap); where there are none either, the piece is all fracture (an empty skin: an
+    inner cell of a many-piece break).
 
     Parameters
     ----------
@@ -365,6 +372,7 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
     cues : the partition's `RegionCues`
     params : `Params`, its region_* fields
     seeds : at most this many seeds tried, largest first
+    normals : (F, 3) unit face normals, or None (no caps joined)
 
     Returns
     -------
@@ -388,8 +396,34 @@ def skin_from_seeds(region: np.ndarray, topo: Topology, turn: np.ndarray, cues: 
         return skin, int(np.flatnonzero(box)[np.argmax(share[box])])
     other = np.flatnonzero(~plane & (share >= NONPLANAR_MIN_SHARE))
     if len(other):
-        return _best_seed(region, topo, turn, cues, params, other[np.argsort(-share[other])][:seeds], relay)
+        skin, seed = _best_seed(region, topo, turn, cues, params, other[np.argsort(-share[other])][:seeds], relay)
+        if normals is not None:
+            skin |= square_caps(region, topo, normals, cues, skin, plane)
+        return skin, seed
     return np.zeros(len(share), bool), int(order[0])
+
+
+def square_caps(region: np.ndarray, topo: Topology, normals: np.ndarray, cues: RegionCues, skin: np.ndarray,
+                plane: np.ndarray) -> np.ndarray:
+    """(R,) bool: exact planes outside `skin` whose main normal is square (within `CAP_DEG`) to the
+    normals of the skin faces along their shared rim, on at least `CAP_SHARE` of those faces: a
+    cylinder's or prism's cap meets its side so; a cut meets the skin at a slant (square only where it
+    passes through the axis)."""
+    e0, e1 = topo.edge_faces[:, 0], topo.edge_faces[:, 1]
+    r0, r1 = region[e0], region[e1]
+    out = np.zeros(len(skin), bool)
+    if cues.normal is None:
+        return out
+    cand = plane & ~skin
+    pairs = [(r0[m], e1[m]) for m in [cand[r0] & skin[r1]]] + [(r1[m], e0[m]) for m in [cand[r1] & skin[r0]]]
+    reg = np.concatenate([p[0] for p in pairs])
+    face = np.concatenate([p[1] for p in pairs])
+    if not len(reg):
+        return out
+    square = np.abs(np.einsum("kd,kd->k", normals[face], cues.normal[reg])) < np.sin(np.radians(CAP_DEG))
+    n_all = np.bincount(reg, minlength=len(skin))
+    n_square = np.bincount(reg, weights=square, minlength=len(skin))
+    return (n_all >= CAP_MIN_EDGES) & (n_square >= CAP_SHARE * np.maximum(n_all, 1))
 
 
 def _best_seed(region, topo, turn, cues, params, candidates, relay) -> tuple[np.ndarray, int]:
@@ -518,7 +552,7 @@ def cue_labels(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, are
     region = crease_regions(normals, areas, topo, edge_angle)
     cues = region_cues(vertices, normals, areas, topo, edge_angle, region)
     turn = boundary_turn(normals, areas, topo, region)
-    skin, seed = skin_from_seeds(region, topo, turn, cues, params)
+    skin, seed = skin_from_seeds(region, topo, turn, cues, params, normals=normals)
     centers = np.asarray(vertices, np.float64)[faces].mean(1)
     wall = wall_thickness(centers, normals, areas, skin[region])
     band = None
