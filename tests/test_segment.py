@@ -290,3 +290,30 @@ def test_a_box_corner_keeps_its_faces_skin_and_its_cut_fracture():
     a, frac = seg.areas, seg.fracture_faces
     assert a[cut & frac].sum() > 0.95 * a[cut].sum()
     assert a[~cut & frac].sum() < 0.1 * a[~cut].sum()
+
+
+def test_a_cylinders_cap_stays_skin_on_a_cell_of_cuts():
+    # a Voronoi cell of a cylinder with its bottom cap and a strip of its side: the cap is an exact
+    # plane like the cuts, but square to the side all along their shared rim (square_caps)
+    import manifold3d as m3d
+    rng = np.random.default_rng(0)
+    m = m3d.Manifold.cylinder(1.5, 0.5, 0.5, 64).translate([0, 0, -0.75])
+    pts = np.c_[rng.uniform(-0.5, 0.5, (12, 2)), rng.uniform(-0.75, 0.75, 12)]
+    planes = []
+    for j in range(12):
+        if j != 8:
+            d = (pts[j] - pts[8]) / np.linalg.norm(pts[j] - pts[8])
+            planes.append((d, float(d @ (pts[8] + pts[j]) / 2)))
+            m = m.trim_by_plane(list(-d), -planes[-1][1])
+    mesh = m.refine_to_length(0.05).to_mesh()
+    v, f = np.asarray(mesh.vert_properties[:, :3], np.float64), np.asarray(mesh.tri_verts, np.int64)
+    c = v[f].mean(1)
+    cut = np.zeros(len(f), bool)
+    for d, off in planes:
+        cut |= np.abs(c @ d - off) < 1e-5
+    cap = np.abs(c[:, 2] + 0.75) < 1e-5
+    assert cap.sum() > 0.2 * len(f)
+    seg = segment(v, f, Params(segmentation="regions"), 1.0, ref)
+    a, frac = seg.areas, seg.fracture_faces
+    assert a[cut & frac].sum() > 0.95 * a[cut].sum()
+    assert a[cap & frac].sum() < 0.05 * a[cap].sum()
