@@ -9,7 +9,10 @@ creases:
 2. `boundary_turn`: the turn across each region boundary between normals averaged a few rings into
    each side. `skin_from_seeds` grows the skin from the largest regions over boundaries gentler
    than `region_merge_deg` + `region_merge_noise` x the seed's roughness (the mesh's own noise),
-   keeping the seed that grows most, a lone sharp-rimmed seed (a cut) discounted.
+   keeping the seed that grows most, a lone sharp-rimmed seed (a cut) discounted. A skin of exact
+   planes (computed cuts: an inner Voronoi cell) is redone: a box's square faces, else the regions
+   that are not exact planes (and caps square to them), else none (all fracture). docs/benchmarks.md,
+   "Pieces that are nearly all fracture".
 3. `region_fracture_prob`: regions outside the grown skin are fracture (bounded by creases too
    sharp to grow over), unless curved and as smooth as the skin (a vessel's inner face), or as
    smooth as the skin where the break is evidently rough (a slab's other sides), or, on a thin
