@@ -18,8 +18,8 @@ from .backends import resolve
 from .icp import same_pose, batched_icp, facing_poses, ransac_poses, refine_point_to_plane
 from .io import Fragment, is_cloud
 from .params import Params
-from .cloudmatch import (AMBIGUOUS_SHARE, MIN_FACING, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS,
-                         STRICT_SPREADS, cloud_params, cloud_sample, region_samples)
+from .cloudmatch import (AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS,
+                         STRICT_SPREADS, WIDE_SPREADS, cloud_params, cloud_sample, region_samples, verify_clouds)
 from .pointcloud import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals, vote_poses
 from .segment import segment
@@ -292,17 +292,23 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
 
 def _match_strict(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
                   result: PairMatch) -> PairMatch:
-    """Two clouds matched on their strictly picked fracture (result: the wider pick's, kept
-    where this finds nothing)."""
+    """Two clouds matched on their strictly picked fracture, then on a wide pick
+    (`cloudmatch.WIDE_SPREADS`) where that finds nothing (result: the first pick's, kept where
+    neither finds a fit)."""
     # sparse clouds: fracture picked strictly (fewer skin points) can find a contact the wider
-    # pick's votes missed (a thin wall's narrow break); the fit must still pass on the wider pick
+    # pick's votes missed (a thin wall's narrow break), and a wide pick one where the first pick
+    # holds too little of a large break; the fit must still pass on the first pick
     strict = _match_prepared(replace(pa, sample=pa.strict_sample), replace(pb, sample=pb.strict_sample), params, be,
                              None, scale, dict(timings))
     if not strict.accepted:
+        wide = [cloud_sample(p.fragment.vertices, getattr(p.fragment, "normals", None), params, scale, WIDE_SPREADS)
+                for p in (pa, pb)]
+        strict = _match_prepared(replace(pa, sample=wide[0]), replace(pb, sample=wide[1]), params, be, None, scale,
+                                 dict(timings))
+    if not strict.accepted:
         return result
-    ver = verify(pa.sample, pb.sample, strict.transform, be, params.contact_distance * scale,
-                 params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
-                 params.max_penetration, mutual=True, min_facing=MIN_FACING)
+    ver = verify_clouds(pa.sample, pb.sample, strict.transform, be, params.contact_distance * scale,
+                        params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale)
     score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return replace(strict, accepted=ver.accepted, score=score, rmse=ver.rmse, overlap=ver.overlap,
                    penetration=ver.penetration, reason=ver.reason if ver.accepted else result.reason)
@@ -323,9 +329,9 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
                                              replace(pb, sample=sb, patches=[patch_b]), turns, be, None, scale,
                                              dict(timings))
             for transform, *_ in fits:
-                ver = verify(sa, sb, transform, be, params.contact_distance * scale,
-                             REGION_RESIDUAL * np.hypot(rough_a, rough_b), REGION_OVERLAP, params.penetration_depth * scale, params.max_penetration, index_of,
-                             mutual=True, min_facing=REGION_FACING)
+                ver = verify_clouds(sa, sb, transform, be, params.contact_distance * scale,
+                                    REGION_RESIDUAL * np.hypot(rough_a, rough_b), REGION_OVERLAP,
+                                    params.penetration_depth * scale, index_of, min_facing=REGION_FACING)
                 if ver.accepted:
                     accepted.append((ver.overlap, transform, ver))
     if not accepted:
@@ -350,11 +356,14 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
     best = None
     for transform, ca, cb, pairs in fits:
-        ver = verify(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
-                     params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
-                     params.max_penetration, index_of, mutual=clouds,
-                     min_facing=MIN_FACING if clouds else params.min_facing,
-                     max_surface_penetration=1.0 if clouds else params.max_surface_penetration)
+        if clouds:  # mutual overlap, facing, interpenetration near the other surface only
+            ver = verify_clouds(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
+                                params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale, index_of)
+        else:
+            ver = verify(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
+                         params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
+                         params.max_penetration, index_of, min_facing=params.min_facing,
+                         max_surface_penetration=params.max_surface_penetration)
         rank = (ver.accepted, ver.overlap - ver.penetration)
         if best is None or rank > best[0]:
             best = (rank, transform, ver, ca, cb, pairs)
@@ -371,6 +380,12 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
                      pairs, ca, cb, ver.reason, timings)
+
+
+def _search_sample(p: Prepared) -> SurfaceSample:
+    """The sample the votes and ICP of `_candidate_fits` weigh: a cloud's unweighted (its fracture
+    likelihood weighs the final polish only, `cloudmatch.LIKELIHOOD_POWER`), a mesh's as it is."""
+    return replace(p.sample, fracture_weight=None) if is_cloud(p.fragment) else p.sample
 
 
 def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict):
@@ -407,7 +422,8 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
                 origins.append(("lcs", ca, cb, m.pairs))
     if heads is None and params.ppf_points > 0:
         # point-pair-feature votes: finds contacts that cover only part of each fracture surface
-        model, scene = _ppf_table(pa.sample, params, scale, "model"), _ppf_table(pb.sample, params, scale, "scene")
+        model = _ppf_table(_search_sample(pa), params, scale, "model")
+        scene = _ppf_table(_search_sample(pb), params, scale, "scene")
         for pose, votes in vote_poses(model, scene, 2 * params.ppf_distance_step * scale, keep=params.ppf_starts):
             starts.append(pose)
             origins.append(("ppf", -1, -1, np.zeros((0, 2), np.int64)))
@@ -424,7 +440,7 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
             indexes[id(points)] = (points, be.nearest_index(points))
         return indexes[id(points)][1]
 
-    w_a, w_b = pa.sample.weights(), pb.sample.weights()
+    w_a, w_b = _search_sample(pa).weights(), _search_sample(pb).weights()
     candidates = []
     if starts:
         # rank every start by a short batched ICP on a small sample, keep the best few. The screen
@@ -456,7 +472,7 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
         best_first = np.argsort(-share, kind="stable")[: params.verify_at_most]
         polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
                                          fine[best_first], be, params.plane_iterations, params.contact_distance * scale,
-                                         index_of(pa.sample.fracture), w_b, w_a)
+                                         index_of(pa.sample.fracture), pb.sample.weights(), pa.sample.weights())
         fits = [(polished[i], *candidates[k][2:]) for i, k in enumerate(best_first)]
     timings["icp+verify"] = time.perf_counter() - t1
     return fits, index_of
