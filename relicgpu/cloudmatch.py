@@ -34,19 +34,11 @@ STRICT_SPREADS = 2.0
 # Fitted on synthetic pairs 0-9 without normals: torso seed 2 rejected (no start near the
 # truth) -> right at 0.5 and at 0 spreads; no other pair changes (they are accepted before).
 WIDE_SPREADS = 0.5
-# Without scanned normals the pick (likelihood >= 0.5) holds two to three skin points for each
-# fracture point on a slab (precision 0.24-0.36 at recall ~0.9; a rim's skin reads rough to small
-# plane fits), and the fine fit's optimum leaned 1.5-3 degrees on them. In the final
-# point-to-plane polish (not the votes, screening or ICP: `pipeline._search_sample`) each fracture
-# sample point weighs its likelihood to this power: the picks at likelihood >= 0.8 are 0.42-0.58
-# fracture. Fitted on synthetic pairs 0-9 (scripts/bench_clouds.py --modes none, with the wide
-# pick and cloud interpenetration below): power 0: 8/10 right, slab seed 0 accepted 2.77 deg off;
-# 1: 9/10, slabs at 1.29/1.48/1.84 deg; 2: 9/10, 0.58/1.21/1.71; 4: 9/10, 1.27/1.13/0.26 (torso
-# seed 0 1.44). Weighing the votes and ICP too was as good on pairs 0-9 but accepted three wrong
-# poses on the corpus clouds (smooth/voronoi/rough-clean seed 2; none without: the corpus is
-# held out, this choice was made after seeing it). Scanned normals
-# pick well (precision 0.61-0.78): not weighed.
-LIKELIHOOD_POWER = 2.0
+# Tried and dropped (issue 15): weighing each fracture point of a cloud without normals by its
+# likelihood squared in the final polish. On synthetic pairs 0-9 it brought slab seed 0 from 2.77 to
+# 0.58 degrees (8/10 -> 9/10 right), but on the held-out pairs 10-23 it put slabs 2.3-2.9 degrees
+# off (12/14 right, 1 wrong -> 10/14, 3 wrong): over all 24 pairs 20 right, 2 wrong without it,
+# 19 right, 3 wrong with it (docs/benchmarks.md, "Sparse clouds without normals").
 
 
 # Crease-bounded regions of a cloud: neighbours (CREASE_NEIGHBOURS nearest, nearer than
@@ -176,15 +168,11 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
     """
     points = np.asarray(points, np.float64)
     normals = estimate_normals(points, given_normals)
-    likelihood = cloud_likelihood(points, given_normals, spreads)
-    fracture = fracture_points(points, given_normals, params, spreads, likelihood)
+    fracture = fracture_points(points, given_normals, params, spreads)
     surf = even_subsample(points, 2 * params.icp_points)
     plane_normals = smoothed_normals(points[fracture], normals[fracture], params.ppf_normal_radius * scale)
-    weight = None
-    if given_normals is None and LIKELIHOOD_POWER > 0:
-        weight = likelihood[fracture] ** LIKELIHOOD_POWER
     return SurfaceSample(points[fracture], np.zeros(len(fracture), np.int64), normals[fracture], points[surf],
-                         normals[surf], plane_normals, fracture_weight=weight)
+                         normals[surf], plane_normals)
 
 
 def fracture_roughness(points: np.ndarray, given_normals: np.ndarray | None, params: Params) -> float:

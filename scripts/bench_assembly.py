@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from relicgpu import synth
-from relicgpu.assembly import TOP_K, assemble
+from relicgpu.assembly import ALL_PAIRS_UP_TO, TOP_K, assemble
 from relicgpu.evaluate import score_assembly
 from relicgpu.io import load_directory
 
@@ -178,7 +178,7 @@ def print_grid(rows: list[dict], top_k: int) -> dict:
     curve = {}
     for k in range(1, 9):
         curve[k] = float(np.mean([x < k for x in ranks])) if ranks else float("nan")
-    print("  " + "  ".join(f"k={k}: {v:.3f}" for k, v in curve.items()) + f"   (chosen k = {top_k})")
+    print("  " + "  ".join(f"k={k}: {v:.3f}" for k, v in curve.items()) + f"   (chosen k = {top_k if top_k is not None else 'default'})")
     summary["screen_recall_by_k"] = curve
     return summary
 
@@ -201,7 +201,8 @@ def main(argv=None) -> int:
     ap.add_argument("--engine", default="local", choices=["local", "ray"])
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--gpus-per-task", type=float, default=None, help="Ray: GPUs per task where there are GPUs")
-    ap.add_argument("--top-k", type=int, default=TOP_K)
+    ap.add_argument("--top-k", type=int, default=None,
+                    help=f"partners per fragment matched in full (default: assemble's: every pair up to {ALL_PAIRS_UP_TO} fragments, else {TOP_K})")
     ap.add_argument("--group", action="store_true",
                     help="classify the heap first (relicgpu.grouping) and match only within each class")
     ap.add_argument("--faces", type=int, default=4000, help="faces per fragment in the grid (synth's default)")
