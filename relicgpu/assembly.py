@@ -44,8 +44,8 @@ CACHE_VERSION = 1
 TOP_K = 8
 # ... in heaps of more than ALL_PAIRS_UP_TO fragments; smaller heaps (one pot's sherds) have every
 # pair matched. On Blender's 20-piece cylinder (flat Voronoi cuts) the screen kept 44 of the 70
-# touching pairs at k = 8 and the assembly placed 0.85 of the pieces; every pair (190, 1.8x the
-# matching time) placed 0.95 (docs/benchmarks.md).
+# touching pairs at k = 8 and the assembly placed 0.85 of the pieces; every pair (190 against 108,
+# 1.6x the assembly's time) placed 0.95 (docs/benchmarks.md).
 ALL_PAIRS_UP_TO = 24
 # The point-pair screen: fracture points per fragment, and the weight of the contour LCS score
 # beside it (it only breaks ties: alone it ranks at chance). On a mix of four 10-piece objects

@@ -70,8 +70,7 @@ class Params:
     ppf_starts: int = 24             # ... poses kept (best-voted reference points)
     ppf_max_distance: float = 0.2    # ... only pairs of points nearer than this vote (0: all pairs)
     max_patches: int = 3             # fracture patches per fragment tried face to face ...
-    min_patch_share: float = 0.15    # ... if at least this share of the largest patch's area ...
-    max_patch_pairs: int = 9         # ... at most this many pairs of them, most similar in area first
+    min_patch_share: float = 0.15    # ... if at least this share of the largest patch's area
     patch_turns: int = 12            # turns about the common normal tried per patch pair
     screen_points: int = 400         # points per start in the short batched ICP that ranks starts
     screen_iterations: int = 10      # ... for every start

@@ -23,7 +23,6 @@ from .cloudmatch import (AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_
 from .pointcloud import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals, vote_poses
 from .segment import segment
-from .segment_cues import crease_regions
 from .verify import SurfaceSample, verify, vertex_normals
 
 
@@ -172,34 +171,21 @@ class Patch:
 
 
 def fracture_patches(fragment: Fragment, seg, prob: np.ndarray | None = None) -> list[Patch]:
-    """The fracture facets: regions between creases (`segment_cues.crease_regions`) holding
-    fracture, one per cut a fragment met, each a candidate contact with one neighbour. Faces count
-    by area times fracture likelihood prob (F,) (default: the segmentation's hard labels).
-
-    Creases, not the segmentation's own regions: the roughness vote joins every facet of a cell
-    broken by flat cuts (Blender's Cell Fracture) into one region whose mean normal faces none of
-    its neighbours; split at its creases, each facet faces the neighbour it touched."""
+    """The fracture facets (regions between creases, before neighbouring fracture regions are
+    joined): one per cut a fragment met, each a candidate contact with one neighbour. Faces count
+    by area times fracture likelihood prob (F,) (default: the segmentation's hard labels)."""
     prob = seg.fracture_faces.astype(np.float64) if prob is None else prob
-    facet = crease_regions(seg.normals, seg.areas, seg.topology, seg.edge_angle)
     centres = fragment.vertices[fragment.faces].mean(axis=1)
     weight = seg.areas * prob
     out = []
-    for r in np.unique(facet[weight > 0]):
-        m = (facet == r) & (weight > 0)
+    for r in np.unique(seg.face_facet[weight > 0]):
+        m = (seg.face_facet == r) & (weight > 0)
         w = weight[m]
         n = (seg.normals[m] * w[:, None]).sum(0)
         if w.sum() <= 0 or np.linalg.norm(n) == 0:
             continue
         out.append(Patch(int(r), (centres[m] * w[:, None]).sum(0) / w.sum(), n / np.linalg.norm(n), float(w.sum())))
     return sorted(out, key=lambda p: -p.area)
-
-
-def _patch_pairs(pa: list[Patch], pb: list[Patch], params: Params) -> list[tuple[Patch, Patch]]:
-    """Pairs of main patches (`_main_patches`) to put face to face, at most `max_patch_pairs`,
-    those of most similar area first: two cells of a break share a facet of one area."""
-    pairs = [(P, Q) for P in _main_patches(pa, params) for Q in _main_patches(pb, params)]
-    pairs.sort(key=lambda pq: abs(np.log(pq[0].area / pq[1].area)))
-    return pairs[: params.max_patch_pairs]
 
 
 def _distinct(poses: np.ndarray, order: np.ndarray, count: int, tol: float) -> list[int]:
@@ -436,10 +422,11 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
             starts.append(pose)
             origins.append(("ppf", -1, -1, np.zeros((0, 2), np.int64)))
     if heads is None:
-        for P, Q in _patch_pairs(pa.patches, pb.patches, params):
-            for pose in facing_poses(P.centre, P.normal, Q.centre, Q.normal, params.patch_turns):
-                starts.append(pose)
-                origins.append(("patch", -1, -1, np.zeros((0, 2), np.int64)))
+        for P in _main_patches(pa.patches, params):
+            for Q in _main_patches(pb.patches, params):
+                for pose in facing_poses(P.centre, P.normal, Q.centre, Q.normal, params.patch_turns):
+                    starts.append(pose)
+                    origins.append(("patch", -1, -1, np.zeros((0, 2), np.int64)))
     indexes: dict = {}  # nearest-neighbour indexes of the pair's own point sets, built once
 
     def index_of(points: np.ndarray):
