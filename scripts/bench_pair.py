@@ -28,6 +28,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--size-factor", type=float, default=1.0,
                     help="scale the paper's vertex counts (e.g. 0.1 for a smoke run; figures need 1)")
+    ap.add_argument("--segmentation", choices=["roughness", "regions", "union", "hybrid"],
+                    help="Params.segmentation (default: Params' own)")
     ap.add_argument("--pairs", type=int, default=len(PAPER), help="only the first N pairs of the table")
     args = ap.parse_args(argv)
 
@@ -38,7 +40,7 @@ def main(argv=None) -> int:
     from relicgpu.pipeline import match_pair, pair_scale, prepare
 
     backend = resolve(args.backend)
-    params = Params()
+    params = Params(segmentation=args.segmentation) if args.segmentation else Params()
     rows = []
     for (va, vb, paper_ms), shape in list(zip(PAPER, SHAPES))[: args.pairs]:
         r = synth.generate(shape, pieces=2, seed=7, faces=int((va + vb) * args.size_factor), noise=0.0005)
