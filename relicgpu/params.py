@@ -10,6 +10,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, replace
 
 
+SEGMENTATIONS = ("roughness", "regions", "union", "hybrid")  # the methods Params.segmentation names
+
+
 @dataclass(frozen=True)
 class Params:
     # scale: the length all relative lengths below are fractions of; None = from the fragments
@@ -28,7 +31,7 @@ class Params:
     # "hybrid": the union less rough-only pieces near the mesh's own noise floor, crease regions alone
     # on coarse meshes (segment.py). Default "roughness": hybrid holds the synth grid and wins on the
     # corpus, but the Blender cylinder assembles 0.65 with it against 0.85 (docs/benchmarks.md)
-    segmentation: str = "roughness"
+    segmentation: str = "roughness"  # one of SEGMENTATIONS
     region_merge_deg: float = 35.0   # regions join the skin across boundaries turning less than this ...
     region_merge_noise: float = 2.0  # ... plus this many times the skin's roughness (degrees) ...
     region_rough_max: float = 3.0    # ... unless rougher than this many times the skin

@@ -30,7 +30,7 @@ from relicgpu import synth
 from relicgpu.assembly import ALL_PAIRS_UP_TO, TOP_K, assemble
 from relicgpu.evaluate import score_assembly
 from relicgpu.io import load_directory
-from relicgpu.params import Params
+from relicgpu.params import SEGMENTATIONS, Params
 
 SHAPES = ("vase", "torso", "slab")
 
@@ -207,7 +207,7 @@ def main(argv=None) -> int:
                     help=f"partners per fragment matched in full (default: assemble's: every pair up to {ALL_PAIRS_UP_TO} fragments, else {TOP_K})")
     ap.add_argument("--group", action="store_true",
                     help="classify the heap first (relicgpu.grouping) and match only within each class")
-    ap.add_argument("--segmentation", choices=["roughness", "regions", "union", "hybrid"],
+    ap.add_argument("--segmentation", choices=SEGMENTATIONS,
                     help="Params.segmentation (default: Params' own)")
     ap.add_argument("--faces", type=int, default=4000, help="faces per fragment in the grid (synth's default)")
     ap.add_argument("--shapes", nargs="+", default=list(SHAPES))

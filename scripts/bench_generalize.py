@@ -33,7 +33,7 @@ import numpy as np
 from relicgpu import corpus
 from relicgpu.evaluate import relative_pose_error, score
 from relicgpu.icp import invert
-from relicgpu.params import Params
+from relicgpu.params import SEGMENTATIONS, Params
 
 QUICK = {"seeds": "0", "faces": 3000, "multi_faces": 1500, "pieces": "5", "realdata_assemble": False}
 FULL = {"seeds": "0,1,2", "faces": 6000, "multi_faces": 3000, "pieces": "5,8", "realdata_assemble": True}
@@ -237,7 +237,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="one seed, small pieces, no realdata assembly")
     ap.add_argument("--realdata-assemble", action=argparse.BooleanOptionalAction, default=None,
                     help="assemble the 20-piece realdata sets (default: not in --quick)")
-    ap.add_argument("--segmentation", choices=["roughness", "regions", "union", "hybrid"],
+    ap.add_argument("--segmentation", choices=SEGMENTATIONS,
                     help="Params.segmentation for every case (default: Params' own)")
     ap.add_argument("--dry", action="store_true", help="build the cases and report their labels only")
     ap.add_argument("--json", help="write the rows and every case here")

@@ -22,13 +22,15 @@ SHAPES = ["vase", "slab", "torso", "vase", "slab"]
 
 
 def main(argv=None) -> int:
+    from relicgpu.params import SEGMENTATIONS, Params
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="numpy")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--size-factor", type=float, default=1.0,
                     help="scale the paper's vertex counts (e.g. 0.1 for a smoke run; figures need 1)")
-    ap.add_argument("--segmentation", choices=["roughness", "regions", "union", "hybrid"],
+    ap.add_argument("--segmentation", choices=SEGMENTATIONS,
                     help="Params.segmentation (default: Params' own)")
     ap.add_argument("--pairs", type=int, default=len(PAPER), help="only the first N pairs of the table")
     args = ap.parse_args(argv)
@@ -36,7 +38,6 @@ def main(argv=None) -> int:
     from relicgpu import synth
     from relicgpu.backends import resolve
     from relicgpu.icp import rotation_angle_deg
-    from relicgpu.params import Params
     from relicgpu.pipeline import match_pair, pair_scale, prepare
 
     backend = resolve(args.backend)
