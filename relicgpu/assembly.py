@@ -37,6 +37,7 @@ from .io import Batch, Fragment, FragmentError, atomic_write_bytes, atomic_write
 from .icp import apply, invert
 from .outputs import assembly_glb, closed_solid, merged_solid, write_outputs  # noqa: F401 (re-exported)
 from .params import Params
+from .pipeline import with_fragment
 
 CACHE_VERSION = 1
 # Screening: each fragment keeps its TOP_K best partners by screening score; a pair
@@ -196,7 +197,7 @@ class Cache:
         try:
             with open(path, "rb") as fh:
                 prepared = pickle.load(fh)
-            prepared = dataclasses.replace(prepared, fragment=fragment)
+            prepared = with_fragment(prepared, fragment)
         except Exception:  # an unreadable or stale file: compute again
             return None
         self.hits += 1
@@ -206,7 +207,7 @@ class Cache:
         path = self._path("prepared", self._key("prepared", h), ".pkl")
         if path is not None:
             # the fragment itself is not stored: it is what the key was made from
-            atomic_write_bytes(path, pickle.dumps(dataclasses.replace(prepared, fragment=None), protocol=5))
+            atomic_write_bytes(path, pickle.dumps(with_fragment(prepared, None), protocol=5))
             self.writes += 1
 
     def get_pair(self, ha: str, hb: str) -> dict | None:
@@ -551,7 +552,8 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
 
     Each group keeps poses in its own frame. An edge between two groups merges them
     when (1) the verified edges between the two groups that agree with its placement
-    outweigh those that do not (by score) and (2) no fragment of one group then
+    outweigh (by score) those that agree on any one other placement (wrong matches scatter:
+    summed together, three wrong ones outvoted a right one) and (2) no fragment of one group then
     interpenetrates a fragment of the other: by the volume of their intersection where both
     are closed solids (`solids`, manifold3d), else by `penetration` of the surface samples.
     An edge inside a group is used when it agrees with the placement the group already
@@ -664,18 +666,20 @@ def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float
             notes[(e.a, e.b)] = "used: closes a loop" if gap <= tol else f"refused: disagrees with a closed loop by {gap / scale:.3f}"
             continue
         move = implied(e)
-        agree, disagree = 0.0, 0.0
-        for f in ordered[k:]:  # the edges not yet decided (those refused before have no vote)
-            if {group[f.a], group[f.b]} != {ga, gb}:
-                continue
-            g = f if group[f.a] == ga else Edge(f.b, f.a, _inv(f.transform), f.score)
-            gap = _pose_gap(samples[g.b].fracture, _inv(pose[g.a]) @ move @ pose[g.b], g.transform)
-            if gap <= tol:
-                agree += f.score
-            else:
-                disagree += f.score
-        if disagree > agree:
-            notes[(e.a, e.b)] = "refused: other matches between the two groups disagree"
+        between = [f if group[f.a] == ga else Edge(f.b, f.a, _inv(f.transform), f.score)
+                   for f in ordered[k:]  # the edges not yet decided (those refused before have no vote)
+                   if {group[f.a], group[f.b]} == {ga, gb}]
+
+        def agrees(m: np.ndarray, g: Edge) -> bool:
+            """Whether edge g agrees with placing gb by move m."""
+            return _pose_gap(samples[g.b].fracture, _inv(pose[g.a]) @ m @ pose[g.b], g.transform) <= tol
+
+        agree = sum(g.score for g in between if agrees(move, g))
+        others = [g for g in between if not agrees(move, g)]
+        # wrong matches scatter: each rival placement is weighed alone, not all disagreeing matches together
+        rival = max((sum(h.score for h in others if agrees(implied(g), h)) for g in others), default=0.0)
+        if rival > agree:
+            notes[(e.a, e.b)] = "refused: other matches between the two groups agree on another placement"
             continue
         clash = _first_clash(members[ga], members[gb], pose, move, samples, params, scale, backend, solids, memo)
         if clash is not None:
@@ -874,7 +878,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
 
         def took_prepared(job, result):
             i = job.payload[0]
-            prepared[i] = dataclasses.replace(result, fragment=fragments[i])
+            prepared[i] = with_fragment(result, fragments[i])
             cache.put_prepared(hashes[i], prepared[i])
             bar.update(1)
 
@@ -996,7 +1000,7 @@ def _prepare_one(payload, fragment):
     from .backends import resolve
     from .pipeline import prepare
     _, params, backend_name, scale = payload
-    return dataclasses.replace(prepare(fragment, params, resolve(backend_name), scale=scale), fragment=None)
+    return with_fragment(prepare(fragment, params, resolve(backend_name), scale=scale, with_second=True), None)
 
 
 def _finish_groups(pose: list, group: list[int]) -> tuple[list, list[int]]:

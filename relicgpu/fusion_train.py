@@ -144,7 +144,8 @@ def build_pairs(specs: list[ObjectSpec], params: Params | None = None, faces: in
                 return pickle.load(fh)
         except Exception:  # a stale or broken cache file is made again
             pass
-    plain = params.with_(fusion_weights=None)
+    # the first segmentation's contours only: the fusion is trained and judged on them
+    plain = params.with_(fusion_weights=None, second_segmentation=None)
     out = []
     for spec in tqdm(specs, desc=desc, disable=not progress, file=sys.stderr):
         r = synth.generate(spec.shape, pieces=spec.pieces, seed=spec.seed, faces=faces, noise=spec.noise,
@@ -270,7 +271,7 @@ def pair_result(pair: PairData, model, params: Params | None = None) -> tuple[bo
     with b's vertices within 1% of the object size (synth objects have unit size) RMS of the truth."""
     from .pipeline import match_pair
 
-    params = params or Params()
+    params = (params or Params()).with_(second_segmentation=None)  # the model's own contours only
     pa, pb = with_model(pair.prepared_a, model, params), with_model(pair.prepared_b, model, params)
     m = match_pair(pa, pb, params, "numpy", scale=pair.scale)
     err = pose_error(pair, m.transform)

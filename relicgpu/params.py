@@ -29,9 +29,11 @@ class Params:
     # from the largest over gentle boundaries, the rest by shape cues (segment_cues, issue 16 item 2);
     # "union": both, a face's fracture likelihood the larger of the two (faces either finds are candidates);
     # "hybrid": the union less rough-only pieces near the mesh's own noise floor, crease regions alone
-    # on coarse meshes (segment.py). Default "roughness": hybrid holds the synth grid and wins on the
-    # corpus, but the Blender cylinder assembles 0.65 with it against 0.85 (docs/benchmarks.md)
+    # on coarse meshes (segment.py). Neither wins everywhere (docs/benchmarks.md, "Two segmentations,
+    # verification decides"): a mesh pair is matched on `segmentation` first and, where that finds no
+    # fit, on `second_segmentation` (None: not at all)
     segmentation: str = "roughness"  # one of SEGMENTATIONS
+    second_segmentation: str | None = "hybrid"  # one of SEGMENTATIONS, or None
     region_merge_deg: float = 35.0   # regions join the skin across boundaries turning less than this ...
     region_merge_noise: float = 2.0  # ... plus this many times the skin's roughness (degrees) ...
     region_rough_max: float = 3.0    # ... unless rougher than this many times the skin
@@ -117,3 +119,13 @@ class Params:
 
 
 DEFAULT = Params()
+
+
+def with_segmentations(params: Params, first: str | None = None, second: str | None = None) -> Params:
+    """`params` with `segmentation` = first and `second_segmentation` = second where given (second
+    "none": no second reading), as the benchmark scripts' --segmentation / --second-segmentation."""
+    if first:
+        params = params.with_(segmentation=first)
+    if second:
+        params = params.with_(second_segmentation=None if second == "none" else second)
+    return params

@@ -30,7 +30,7 @@ from relicgpu import synth
 from relicgpu.assembly import ALL_PAIRS_UP_TO, TOP_K, assemble
 from relicgpu.evaluate import score_assembly
 from relicgpu.io import load_directory
-from relicgpu.params import SEGMENTATIONS, Params
+from relicgpu.params import SEGMENTATIONS, Params, with_segmentations
 
 SHAPES = ("vase", "torso", "slab")
 
@@ -54,7 +54,8 @@ def run_one(frag_dir: Path, truth: dict, args, out_dir: Path | None = None) -> d
         from relicgpu.grouping import group_fragments
         objects = group_fragments(frags).labels
         group_time = time.perf_counter() - t0
-    params = Params(segmentation=args.segmentation) if getattr(args, "segmentation", None) else None
+    params = with_segmentations(Params(), getattr(args, "segmentation", None),
+                                getattr(args, "second_segmentation", None))
     result = assemble(frags, params, backend=args.backend, engine=args.engine, workers=args.workers, progress=False,
                       top_k=args.top_k, out_dir=out_dir, cache_dir=None if out_dir is None else out_dir / "cache",
                       gpus_per_task=args.gpus_per_task, objects=objects)
@@ -209,6 +210,9 @@ def main(argv=None) -> int:
                     help="classify the heap first (relicgpu.grouping) and match only within each class")
     ap.add_argument("--segmentation", choices=SEGMENTATIONS,
                     help="Params.segmentation (default: Params' own)")
+    ap.add_argument("--second-segmentation", choices=SEGMENTATIONS + ("none",),
+                    help="Params.second_segmentation, the reading a pair is matched on again where the first "
+                         "finds no fit (none: no second reading; default: Params' own)")
     ap.add_argument("--faces", type=int, default=4000, help="faces per fragment in the grid (synth's default)")
     ap.add_argument("--shapes", nargs="+", default=list(SHAPES))
     ap.add_argument("--pieces", nargs="+", type=int, default=[5, 10])

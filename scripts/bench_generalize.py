@@ -33,7 +33,7 @@ import numpy as np
 from relicgpu import corpus
 from relicgpu.evaluate import relative_pose_error, score
 from relicgpu.icp import invert
-from relicgpu.params import SEGMENTATIONS, Params
+from relicgpu.params import SEGMENTATIONS, Params, with_segmentations
 
 QUICK = {"seeds": "0", "faces": 3000, "multi_faces": 1500, "pieces": "5", "realdata_assemble": False}
 FULL = {"seeds": "0,1,2", "faces": 6000, "multi_faces": 3000, "pieces": "5,8", "realdata_assemble": True}
@@ -130,7 +130,7 @@ def run(args) -> dict:
                 [] if args.realdata == "none" else args.realdata.split(","))
     faces = args.faces or preset["faces"]
     multi_faces = args.multi_faces or preset["multi_faces"]
-    params = Params(segmentation=args.segmentation) if args.segmentation else Params()
+    params = with_segmentations(Params(), args.segmentation, args.second_segmentation)
     backend = resolve(args.backend)
     plan = [(fam, seed, 2) for fam in families for seed in seeds]
     plan += [(fam, seed, p) for fam in families for seed in seeds for p in pieces]
@@ -239,6 +239,9 @@ def main(argv=None) -> int:
                     help="assemble the 20-piece realdata sets (default: not in --quick)")
     ap.add_argument("--segmentation", choices=SEGMENTATIONS,
                     help="Params.segmentation for every case (default: Params' own)")
+    ap.add_argument("--second-segmentation", choices=SEGMENTATIONS + ("none",),
+                    help="Params.second_segmentation, the reading a pair is matched on again where the first "
+                         "finds no fit (none: no second reading; default: Params' own)")
     ap.add_argument("--dry", action="store_true", help="build the cases and report their labels only")
     ap.add_argument("--json", help="write the rows and every case here")
     args = ap.parse_args(argv)

@@ -22,7 +22,7 @@ SHAPES = ["vase", "slab", "torso", "vase", "slab"]
 
 
 def main(argv=None) -> int:
-    from relicgpu.params import SEGMENTATIONS, Params
+    from relicgpu.params import SEGMENTATIONS, Params, with_segmentations
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="numpy")
@@ -32,6 +32,9 @@ def main(argv=None) -> int:
                     help="scale the paper's vertex counts (e.g. 0.1 for a smoke run; figures need 1)")
     ap.add_argument("--segmentation", choices=SEGMENTATIONS,
                     help="Params.segmentation (default: Params' own)")
+    ap.add_argument("--second-segmentation", choices=SEGMENTATIONS + ("none",),
+                    help="Params.second_segmentation, the reading a pair is matched on again where the first "
+                         "finds no fit (none: no second reading; default: Params' own)")
     ap.add_argument("--pairs", type=int, default=len(PAPER), help="only the first N pairs of the table")
     args = ap.parse_args(argv)
 
@@ -41,7 +44,7 @@ def main(argv=None) -> int:
     from relicgpu.pipeline import match_pair, pair_scale, prepare
 
     backend = resolve(args.backend)
-    params = Params(segmentation=args.segmentation) if args.segmentation else Params()
+    params = with_segmentations(Params(), args.segmentation, args.second_segmentation)
     rows = []
     for (va, vb, paper_ms), shape in list(zip(PAPER, SHAPES))[: args.pairs]:
         r = synth.generate(shape, pieces=2, seed=7, faces=int((va + vb) * args.size_factor), noise=0.0005)

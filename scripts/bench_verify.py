@@ -72,6 +72,10 @@ def _cases(args):
             truth = np.linalg.inv(r.poses[i]) @ r.poses[j]
             kind = "multi-touching" if (i, j) in r.touching else "multi-apart"
             yield name, 0, kind, r.fragments[i], r.fragments[j], truth, corpus.object_size(r)
+    for k in range(args.remeshed):
+        shape, seed = ("vase", "torso", "slab")[k % 3], k // 3
+        r, a, b = remeshed_pair(shape, seed)
+        yield f"synth-remeshed-{shape}", seed, "pair", a, b, np.linalg.inv(r.poses[0]) @ r.poses[1], corpus.object_size(r)
     for k in range(args.open):
         a, b, truth = make_pair(k, "open", 0, 0.0, "corpus")
         whole = np.vstack([a.vertices, b.vertices @ truth[:3, :3].T + truth[:3, 3]])
@@ -96,14 +100,40 @@ def _cases(args):
                     yield fam, seed, kind, r.fragments[i], r.fragments[j], truth, corpus.object_size(r)
 
 
+def remeshed_pair(shape: str, seed: int, n_points: int = 40000, noise: float = 0.001):
+    """A synth two-piece object and its pieces sampled (n_points uniform on the surface, each
+    moved by up to noise x the piece's diagonal in a random direction) and meshed again by
+    `pointcloud.triangulate`, as tests/test_pointcloud.py's remeshed pairs: a scan reconstructed
+    by the project's own mesher (returns the SynthResult and the two remeshed Fragments)."""
+    import trimesh
+
+    from relicgpu import pointcloud as pc
+    from relicgpu import synth
+    from relicgpu.io import Fragment
+
+    result = synth.generate(shape, pieces=2, seed=seed, progress=False)
+    out = []
+    for i, frag in enumerate(result.fragments):
+        mesh = frag.to_trimesh()
+        p, _ = trimesh.sample.sample_surface(mesh, n_points, seed=10 + i)
+        rng = np.random.default_rng(11 + i)
+        d = rng.normal(size=p.shape)
+        d /= np.linalg.norm(d, axis=1)[:, None]
+        p = p + d * rng.uniform(0.0, noise * float(np.linalg.norm(mesh.extents)), (len(p), 1))
+        res = pc.triangulate(p, max_points=pc.MATCH_POINTS)
+        out.append(Fragment(frag.name, res.vertices, res.faces, None, res.notes))
+    return result, out[0], out[1]
+
+
 def collect(args) -> int:
     import relicgpu.pipeline as pl
     from relicgpu.backends import resolve
     from relicgpu.evaluate import relative_pose_error
     from relicgpu.icp import rotation_angle_deg
-    from relicgpu.params import Params
+    from relicgpu.params import Params, with_segmentations
 
-    params = Params(segmentation=args.segmentation) if args.segmentation else Params()
+    # one reading's fits: the spy refuses every fit, so a second reading would run on every pair
+    params = with_segmentations(Params(), args.segmentation, "none")
     be = resolve(args.backend)
     original = pl.verify
     calls: list = []
@@ -302,6 +332,8 @@ def forest(args) -> int:
 
 
 def main(argv=None) -> int:
+    from relicgpu.params import SEGMENTATIONS
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command", required=True)
     c = sub.add_parser("collect", help="run match_pair and record every verified fit")
@@ -313,9 +345,11 @@ def main(argv=None) -> int:
     c.add_argument("--faces", type=int, default=2000)
     c.add_argument("--multi-faces", type=int, default=1500)
     c.add_argument("--pairs", action=argparse.BooleanOptionalAction, default=True, help="two-piece objects")
+    c.add_argument("--remeshed", type=int, default=0, help="the first k synth pieces sampled and meshed again "
+                                                             "(vase, torso, slab; seeds 0, 1, ...)")
     c.add_argument("--open", type=int, default=0, help="the first k of bench_clouds' open-mesh pairs")
     c.add_argument("--multi", type=int, default=0, help="piece pairs of each 5-piece object (touching first)")
-    c.add_argument("--segmentation", choices=["roughness", "regions", "union"])
+    c.add_argument("--segmentation", choices=SEGMENTATIONS)
     c.add_argument("--realdata", type=int, default=0, help="piece pairs of each ../shared/realdata Blender set "
                                                            "(touching ones first, up to half)")
     c.add_argument("--backend", default="numpy")

@@ -435,3 +435,36 @@ def test_cli_reports_a_bad_directory_in_one_line(tmp_path):
                            str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert "not a directory" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_forest_weighs_each_rival_placement_alone(broken, monkeypatch):
+    # fragment 3 touches 0, 1 and 2: one right match (1, 3) and two wrong ones, each placing 3 at
+    # its own wrong place (pulled off the object by 10% and 20% of the scale: no interpenetration).
+    # Summed, the wrong ones outweigh the right one; each alone does not, and wrong matches scatter
+    import relicgpu.assembly as assembly
+
+    monkeypatch.setattr(assembly, "RECOVERY_ROUNDS", 0)  # the rule itself, not the recovery after it
+    samples = truth_samples(broken)
+    solids = [closed_solid(f) for f in broken.fragments]
+    scale = scale_of(broken.fragments)
+    others = [Edge(i, j, _inv(broken.poses[i]) @ broken.poses[j], 0.8) for i, j in broken.touching if 3 not in (i, j)]
+    centre = np.mean([samples[i].surface.mean(axis=0) @ broken.poses[i][:3, :3].T + broken.poses[i][:3, 3]
+                      for i in range(len(broken.fragments))], axis=0)  # the object's, in its frame
+
+    def pulled(i, share):
+        """3 placed in i's frame, moved off the object's centre by share of the scale."""
+        rel = _inv(broken.poses[i]) @ broken.poses[3]
+        out = samples[3].surface.mean(axis=0) @ broken.poses[3][:3, :3].T + broken.poses[3][:3, 3] - centre
+        move = np.eye(4)
+        move[:3, 3] = _inv(broken.poses[i])[:3, :3] @ (share * scale * out / np.linalg.norm(out))
+        return move @ rel
+
+    right = Edge(1, 3, _inv(broken.poses[1]) @ broken.poses[3], 0.5)
+    wrong = [Edge(0, 3, pulled(0, 0.1), 0.3), Edge(2, 3, pulled(2, 0.2), 0.3)]
+    pose, group, notes = grow_forest(len(broken.fragments), others + [right] + wrong, samples, Params(), scale, ref,
+                                     solids)
+    assert notes[(1, 3)] == "used: spanning tree", notes
+    assert all(notes[(e.a, e.b)].startswith("refused: disagrees with a closed loop") for e in wrong), notes
+    poses, groups = _finish_groups(pose, group)
+    s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching, [])
+    assert s.part_accuracy == 1.0

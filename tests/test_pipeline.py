@@ -145,3 +145,32 @@ def test_a_wrong_fit_of_a_thin_wall_is_refused_for_not_facing():
 
     after = match_pair(a, b, backend="numpy")
     assert not after.accepted or _pose_error(after, a, b, truth)[0] < 2.0
+
+
+def test_a_pair_the_first_segmentation_misreads_is_matched_on_the_second():
+    """A thin-walled vessel of another generator (relicgpu.corpus, clean scan): the roughness
+    vote misreads its wall ends, and no fit is found on that reading alone; matched again on
+    the second segmentation (Params.second_segmentation, "hybrid"), the true pose is accepted."""
+    from relicgpu import corpus
+    from relicgpu.params import Params
+    from relicgpu.pipeline import pair_scale, prepare, with_fragment
+
+    r = corpus.generate("vessel-clean", pieces=2, seed=0, faces=2000)
+    a, b = r.fragments
+    truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
+    alone = match_pair(a, b, Params(second_segmentation=None), backend="numpy")
+    assert not alone.accepted or _pose_error(alone, a, b, truth)[0] > 2.0  # the case the second reading is for
+
+    both = match_pair(a, b, backend="numpy")
+    assert both.accepted, both.reason
+    assert both.reason.endswith("(hybrid segmentation)")
+    rot, rms = _pose_error(both, a, b, truth)
+    assert rot < 2.0 and rms < 0.01
+
+    p = prepare(a, Params(), "numpy", scale=pair_scale(a, b, Params()), with_second=True)
+    assert p.second is not None and p.second.fragment is a and p.second.second is None
+    assert not np.array_equal(p.fracture_faces, p.second.fracture_faces)
+    shipped = with_fragment(p, None)
+    assert shipped.fragment is None and shipped.second.fragment is None
+    assert prepare(a, Params(second_segmentation="roughness"), "numpy", with_second=True).second is None
+    assert prepare(a, Params(), "numpy").second is None  # match_pair prepares it where it is needed
