@@ -9,6 +9,7 @@ the time of each stage.
     python scripts/bench_assembly.py                    # both, default sizes
     python scripts/bench_assembly.py --grid-only --faces 2000
     python scripts/bench_assembly.py --scale-only --backend warp-cuda --json out.json
+    python scripts/bench_assembly.py --readings 2 --shapes vase --pieces 10 --seeds 0 --backend numpy
 
 Prints tables; --json also writes all figures there. Synthetic data is kept under --work between runs, named by its settings and the source of relicgpu/synth.py (never reused from an older synth).
 """
@@ -106,6 +107,34 @@ def grid(args, work: Path) -> list[dict]:
                 print(f"  {shape:6s} {pieces:3d} seed {seed}: accuracy {row['part_accuracy']:.2f}, "
                       f"precision {row['pair_precision']:.2f}, recall {row['pair_recall']:.2f}, "
                       f"{row['time']:.1f} s", file=sys.stderr, flush=True)
+    return rows
+
+
+def readings(args, work: Path) -> list[dict]:
+    """The grid's objects assembled with the second segmentation (--second-segmentation, default
+    Params') and without it, alternating --readings times: median times, their ratio, accuracy."""
+    import statistics
+    from argparse import Namespace
+
+    rows = []
+    for shape in args.shapes:
+        for pieces in args.pieces:
+            for seed in args.seeds:
+                d = synth_dir(work, shape=shape, pieces=pieces, seed=seed, faces=args.faces)
+                runs: dict = {"with": [], "without": []}
+                for _ in range(args.readings):
+                    for key, second in (("with", args.second_segmentation), ("without", "none")):
+                        runs[key].append(run_one(d / "fragments", synth.read_truth(d),
+                                                 Namespace(**{**vars(args), "second_segmentation": second})))
+                row = {"shape": shape, "pieces": pieces, "seed": seed}
+                for key, got in runs.items():
+                    row[f"time_{key}"] = statistics.median(r["time"] for r in got)
+                    row[f"accuracy_{key}"] = min(r["part_accuracy"] for r in got)
+                row["ratio"] = row["time_with"] / row["time_without"]
+                rows.append(row)
+                print(f"  {shape:6s} {pieces:3d} seed {seed}: with the second reading {row['time_with']:.1f} s "
+                      f"(accuracy {row['accuracy_with']:.2f}), without {row['time_without']:.1f} s "
+                      f"({row['accuracy_without']:.2f}), ratio {row['ratio']:.2f}", flush=True)
     return rows
 
 
@@ -219,6 +248,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--scale-sizes", nargs="+", type=int, default=[10, 50, 100])
     ap.add_argument("--scale-faces", type=int, default=5000, help="faces per fragment in the scale run")
+    ap.add_argument("--readings", type=int, default=0,
+                    help="only time the grid's objects with and without the second reading, alternating this "
+                         "many times (medians and their ratio)")
     ap.add_argument("--grid-only", action="store_true")
     ap.add_argument("--scale-only", action="store_true")
     ap.add_argument("--work", default=None, help="where synthetic data is kept (reused between runs)")
@@ -230,12 +262,14 @@ def main(argv=None) -> int:
     report = {"machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                           "python": platform.python_version()},
               "args": {k: v for k, v in vars(args).items()}}
-    if not args.scale_only:
+    if args.readings:
+        report["readings"] = readings(args, work)
+    elif not args.scale_only:
         print("grid ...", file=sys.stderr)
         rows = grid(args, work)
         report["grid"] = rows
         report["grid_summary"] = print_grid(rows, args.top_k)
-    if not args.grid_only:
+    if not (args.grid_only or args.readings):
         print("scale ...", file=sys.stderr)
         rows = scale(args, work)
         report["scale"] = rows

@@ -24,6 +24,8 @@ CASES = [
     ("bench_pair.py", "--pairs 1 --size-factor 0.15 --repeats 1 --json {tmp}/pair.json", "pair.json"),
     ("bench_assembly.py", "--grid-only --shapes slab --pieces 3 --seeds 0 --faces 1500 --backend numpy "
      "--work {tmp}/work --json {tmp}/asm.json", "asm.json"),
+    ("bench_assembly.py", "--readings 1 --shapes slab --pieces 3 --seeds 0 --faces 1500 --backend numpy "
+     "--work {tmp}/work --json {tmp}/readings.json", "readings.json"),
     ("bench_fusion.py", "--pairs 2 --skip-full --out {tmp}/fusion --cache-dir {tmp}/cache", None),
     ("bench_group.py", "--seeds 0 --train-seeds 1 --no-supervised --cache ''", None),
     ("bench_mosaic.py", "--pairs 1 --json {tmp}/mosaic.json", "mosaic.json"),
