@@ -674,8 +674,9 @@ def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float
             """Whether edge g agrees with placing gb by move m."""
             return _pose_gap(samples[g.b].fracture, _inv(pose[g.a]) @ m @ pose[g.b], g.transform) <= tol
 
-        agree = sum(g.score for g in between if agrees(move, g))
-        others = [g for g in between if not agrees(move, g)]
+        agreeing = [agrees(move, g) for g in between]
+        agree = sum(g.score for g, ok in zip(between, agreeing) if ok)
+        others = [g for g, ok in zip(between, agreeing) if not ok]
         # wrong matches scatter: each rival placement is weighed alone, not all disagreeing matches together
         rival = max((sum(h.score for h in others if agrees(implied(g), h)) for g in others), default=0.0)
         if rival > agree:

@@ -144,8 +144,7 @@ def build_pairs(specs: list[ObjectSpec], params: Params | None = None, faces: in
                 return pickle.load(fh)
         except Exception:  # a stale or broken cache file is made again
             pass
-    # the first segmentation's contours only: the fusion is trained and judged on them
-    plain = params.with_(fusion_weights=None, second_segmentation=None)
+    plain = params.with_(fusion_weights=None)
     out = []
     for spec in tqdm(specs, desc=desc, disable=not progress, file=sys.stderr):
         r = synth.generate(spec.shape, pieces=spec.pieces, seed=spec.seed, faces=faces, noise=spec.noise,

@@ -118,9 +118,9 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     sample = _surface_sample(fragment, seg, prob, params.icp_points, params.ppf_normal_radius * scale)
     patches = fracture_patches(fragment, seg, prob)
     timings["sample"] = time.perf_counter() - t2
-    second = None
-    if with_second and _second_params(params) is not None:
-        second = prepare(fragment, _second_params(params), be, scale)
+    second, second_params = None, _second_params(params)
+    if with_second and second_params is not None:
+        second = prepare(fragment, second_params, be, scale)
         timings["second"] = sum(second.timings.values())
     return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, patches, timings,
                     second=second)
@@ -145,7 +145,7 @@ def _second_reading(p: Prepared, params: Params, be, scale: float) -> Prepared |
 
 def with_fragment(prepared: Prepared, fragment) -> Prepared:
     """`prepared` (and its second reading) holding `fragment` (None: left out, to ship or store)."""
-    second = prepared.second and replace(prepared.second, fragment=fragment)
+    second = None if prepared.second is None else replace(prepared.second, fragment=fragment)
     return replace(prepared, fragment=fragment, second=second)
 
 
