@@ -124,6 +124,8 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from .backends import BackendError, resolve
+from .backends import numpy as reference
 from .io import FragmentError
 
 
@@ -208,106 +210,23 @@ class Mosaic:
     matches: list = field(default_factory=list)  # PairMatch of (i, i+1)
 
 
-# --- kernels: LED box mean and block entropy ---------------------------------
-
-def _led_numpy(image: np.ndarray, half: int) -> np.ndarray:
-    """Eq. 4 in float64: the (2A+1)^2 box sum of `image` (zeros outside) over (2A+1)^2."""
-    e = np.asarray(image, np.float64)
-    k = 2 * half + 1
-    padded = np.pad(e, half + 1)[:-1, :-1]  # one leading zero row/col for the integral image
-    s = padded.cumsum(0).cumsum(1)
-    h, w = e.shape
-    total = s[k:k + h, k:k + w] - s[:h, k:k + w] - s[k:k + h, :w] + s[:h, :w]
-    return total / (k * k)
-
-
-def _block_entropy_numpy(levels: np.ndarray, block: int, n_levels: int) -> np.ndarray:
-    """Eq. 8 in float64 for every block x block block: out[y, x] = 1 - sum_l P_l^2 of
-    levels[y:y+block, x:x+block], where a level v counts max(0, 1 - |v - l|) in bin l
-    (a plain histogram for integer levels); shape (H-block+1, W-block+1)."""
-    q = np.asarray(levels, np.float64)
-    h, w = q.shape
-    oh, ow = h - block + 1, w - block + 1
-    sq = np.zeros((oh, ow))
-    for lv in range(n_levels):
-        member = np.clip(1.0 - np.abs(q - lv), 0.0, None)
-        s = np.pad(member, ((1, 0), (1, 0))).cumsum(0).cumsum(1)
-        count = s[block:, block:] - s[:oh, block:] - s[block:, :ow] + s[:oh, :ow]
-        sq += count * count
-    return 1.0 - sq / float(block * block) ** 2
-
-
-# A fixed work-group shape: PoCL compiles a kernel anew for every work-group size it meets.
-_CL_LOCAL = (16, 4)
-
-
-def _cl_global(width: int, height: int) -> tuple[int, int]:
-    return (-(-width // _CL_LOCAL[0]) * _CL_LOCAL[0], -(-height // _CL_LOCAL[1]) * _CL_LOCAL[1])
-
-
-def _cl_kernel(be, name: str):
-    """A kernel of mosaic.cl, the backend's cached one where it keeps them."""
-    if hasattr(be, "kernel"):
-        return be.kernel("mosaic.cl", name)
-    import pyopencl as cl
-    return cl.Kernel(be.program("mosaic.cl"), name)
-
-
-def _cl_lock(be):
-    """Kernel objects hold their arguments: one caller at a time on a shared backend."""
-    import contextlib
-    lock = getattr(be, "_lock", None)
-    return lock if lock is not None else contextlib.nullcontext()
-
+# --- kernels: LED box mean and block entropy (on the backend) ------------------
 
 def led(image: np.ndarray, half: int, backend="numpy") -> np.ndarray:
     """Local edge density (Eq. 4): the mean of `image` over the (2A+1)^2 window
     centred on each pixel, pixels outside the image counting as 0. Same shape as image."""
-    from .backends import resolve
     be = resolve(backend)
-    name = be.name
     img = np.asarray(image)
     if img.ndim != 2:
         raise ValueError(f"led needs a 2-D image, got shape {img.shape}")
-    if name.startswith("numpy"):
-        return _led_numpy(img, half)
-    scale = 1.0 / float((2 * half + 1) ** 2)
-    src = np.ascontiguousarray(img, np.float32)
-    h, w = src.shape
-    if name.startswith("warp-"):
-        import warp as wp
-        from .kernels.warp import mosaic as wk
-        d_src = wp.array(src, dtype=wp.float32, device=be.device)
-        d_rows = wp.empty((h, w), dtype=wp.float32, device=be.device)
-        d_out = wp.empty((h, w), dtype=wp.float32, device=be.device)
-        wp.launch(wk.led_rows, dim=(h, w), inputs=[d_src, int(half), d_rows], device=be.device)
-        wp.launch(wk.led_cols, dim=(h, w), inputs=[d_rows, int(half), float(scale), d_out], device=be.device)
-        return d_out.numpy()
-    if name.startswith("opencl"):
-        import pyopencl as cl
-        mf = cl.mem_flags
-        d_src = cl.Buffer(be.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=src)
-        d_rows = cl.Buffer(be.ctx, mf.READ_WRITE, src.nbytes)
-        d_out = cl.Buffer(be.ctx, mf.WRITE_ONLY, src.nbytes)
-        glob = _cl_global(w, h)
-        out = np.empty((h, w), np.float32)
-        with _cl_lock(be):
-            _cl_kernel(be, "mosaic_led_rows")(be.queue, glob, _CL_LOCAL, d_src, np.int32(h), np.int32(w),
-                                              np.int32(half), d_rows)
-            _cl_kernel(be, "mosaic_led_cols")(be.queue, glob, _CL_LOCAL, d_rows, np.int32(h), np.int32(w),
-                                              np.int32(half), np.float32(scale), d_out)
-            cl.enqueue_copy(be.queue, out, d_out)
-        return out
-    raise ValueError(f"backend {name!r} has no mosaic kernels")
+    return be.led(img, half)
 
 
 def block_entropy(levels: np.ndarray, block: int, n_levels: int, backend="numpy") -> np.ndarray:
     """Local entropy (Eq. 8) of every block x block block of a quantised image (levels
     in [0, n_levels-1], n_levels <= 64; real levels are split linearly between the two
     nearest bins); out[y, x] is the block whose top-left is (y, x), shape (H-block+1, W-block+1)."""
-    from .backends import resolve
     be = resolve(backend)
-    name = be.name
     q = np.asarray(levels)
     if q.ndim != 2 or q.shape[0] < block or q.shape[1] < block:
         raise ValueError(f"block_entropy needs a 2-D image of at least {block}x{block}, got shape {q.shape}")
@@ -315,30 +234,7 @@ def block_entropy(levels: np.ndarray, block: int, n_levels: int, backend="numpy"
         raise ValueError(f"n_levels must be in 1..64, got {n_levels}")
     if q.size and not (q.min() >= 0 and q.max() <= n_levels - 1):
         raise ValueError(f"levels must lie in [0, {n_levels - 1}], got [{q.min()}, {q.max()}]")
-    if name.startswith("numpy"):
-        return _block_entropy_numpy(q, block, n_levels)
-    src = np.ascontiguousarray(q, np.float32)
-    h, w = src.shape
-    oh, ow = h - block + 1, w - block + 1
-    if name.startswith("warp-"):
-        import warp as wp
-        from .kernels.warp import mosaic as wk
-        d_src = wp.array(src, dtype=wp.float32, device=be.device)
-        d_out = wp.empty((oh, ow), dtype=wp.float32, device=be.device)
-        wp.launch(wk.block_entropy, dim=(oh, ow), inputs=[d_src, int(block), int(n_levels), d_out], device=be.device)
-        return d_out.numpy()
-    if name.startswith("opencl"):
-        import pyopencl as cl
-        mf = cl.mem_flags
-        d_src = cl.Buffer(be.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=src)
-        out = np.empty((oh, ow), np.float32)
-        d_out = cl.Buffer(be.ctx, mf.WRITE_ONLY, out.nbytes)
-        with _cl_lock(be):
-            _cl_kernel(be, "mosaic_block_entropy")(be.queue, _cl_global(ow, oh), _CL_LOCAL, d_src, np.int32(h),
-                                                   np.int32(w), np.int32(block), np.int32(n_levels), d_out)
-            cl.enqueue_copy(be.queue, out, d_out)
-        return out
-    raise ValueError(f"backend {name!r} has no mosaic kernels")
+    return be.block_entropy(q, block, n_levels)
 
 
 # --- 3.3.1 preprocessing -------------------------------------------------------
@@ -746,7 +642,7 @@ def match_entropy(left: Prepared, right: Prepared, region: FeatureRegion, params
             patch = lv[cy + top:cy + top + box[2], cx + left_:cx + left_ + box[3]]
         else:
             patch = quantise(_sample_box(nm, (cy, cx), box, angle), p.levels, p.soft_bins)
-        dense = _block_entropy_numpy(patch, p.block, p.levels)
+        dense = reference.block_entropy(patch, p.block, p.levels)
         return dense[offs[:, 0] - top, offs[:, 1] - left_]
 
     def grid(ys, xs):
@@ -1141,7 +1037,6 @@ def stitch(images, backend="auto", params: MosaicParams | None = None, vertical:
            progress: bool = False) -> Mosaic:
     """Stitch a left-to-right sequence of overlapping photographs (arrays or paths);
     `vertical=True` for a top-to-bottom one. Each image is placed against the one before it."""
-    from .backends import resolve
     be = resolve(backend)
     p = params or MosaicParams()
     names, arrays = [], []
@@ -1253,7 +1148,6 @@ def cli_main(args) -> int:
         raise CliError(f"{out}: unknown image suffix; use one of {', '.join(sorted(_FORMATS))}")
     ensure_not_input(out, args.images)
     try:
-        from .backends import BackendError, resolve
         backend = resolve(args.backend)
     except BackendError as exc:
         raise CliError(str(exc)) from None

@@ -1,14 +1,14 @@
 // OpenCL kernels of the image mosaic (paper sections 3.3.2 and 3.4).
-// The float64 specification is in relicgpu/mosaic.py (_led_numpy, _block_entropy_numpy);
-// relicgpu.mosaic.led and relicgpu.mosaic.block_entropy launch these.
+// The float64 specification is relicgpu.backends.numpy (led, block_entropy);
+// OpenCLBackend.led and OpenCLBackend.block_entropy launch these.
 // Global size is (width, height) rounded up to whole work-groups: get_global_id(0) is the
 // column, and every kernel checks its bounds.
 
 #define MOSAIC_MAX_LEVELS 64
 
 // LED (Eq. 4), pass 1: sum of src over columns x-A..x+A (zeros outside the image).
-__kernel void mosaic_led_rows(__global const float *src, const int height, const int width,
-                              const int radius, __global float *out)
+__kernel void led_rows(__global const float *src, const int height, const int width,
+                       const int radius, __global float *out)
 {
     const int x = get_global_id(0);
     const int y = get_global_id(1);
@@ -21,8 +21,8 @@ __kernel void mosaic_led_rows(__global const float *src, const int height, const
 }
 
 // LED (Eq. 4), pass 2: sum of the row sums over rows y-A..y+A, times 1/(2A+1)^2.
-__kernel void mosaic_led_cols(__global const float *rows, const int height, const int width,
-                              const int radius, const float scale, __global float *out)
+__kernel void led_cols(__global const float *rows, const int height, const int width,
+                       const int radius, const float scale, __global float *out)
 {
     const int x = get_global_id(0);
     const int y = get_global_id(1);
@@ -38,8 +38,8 @@ __kernel void mosaic_led_cols(__global const float *rows, const int height, cons
 // 1 - sum_l P(l)^2 over the levels 0..n_levels-1 (n_levels <= 64). Levels are reals in
 // [0, n_levels-1]: v adds 1 - frac(v) to bin floor(v) and frac(v) to the next one.
 // The output is (height-block+1) x (width-block+1).
-__kernel void mosaic_block_entropy(__global const float *levels, const int height, const int width,
-                                   const int block, const int n_levels, __global float *out)
+__kernel void block_entropy(__global const float *levels, const int height, const int width,
+                            const int block, const int n_levels, __global float *out)
 {
     const int out_w = width - block + 1;
     const int out_h = height - block + 1;

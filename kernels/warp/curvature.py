@@ -28,7 +28,7 @@ def wrap(i: int, n: int) -> int:
 
 
 @wp.kernel
-def contour_features_kernel(
+def contour_features(
     points: wp.array(dtype=wp.vec3d),
     k: int,
     stride: int,

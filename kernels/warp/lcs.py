@@ -43,7 +43,7 @@ def row_mask(bb: vec64f, base: int, lo: wp.float32, hi: wp.float32) -> wp.uint32
 
 
 @wp.kernel
-def flag_matrix_kernel(
+def flag_matrix(
     thr: wp.array(dtype=wp.vec2),
     b: wp.array(dtype=wp.float32),
     flags: wp.array2d(dtype=wp.uint8),
@@ -63,7 +63,7 @@ def add_carry(x: wp.uint32, y: wp.uint32, cin: wp.uint32) -> wp.vec2ui:
 
 
 @wp.kernel
-def lcs_lengths_kernel(
+def lcs_lengths(
     thr: wp.array(dtype=wp.vec2),  # (lo, hi) per a value
     a_off: wp.array(dtype=wp.int32),
     b_vals: wp.array(dtype=wp.float32),  # packed b values, padded with 64 extra entries

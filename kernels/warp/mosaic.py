@@ -1,7 +1,7 @@
 """Warp kernels of the image mosaic (paper sections 3.3.2 and 3.4).
 
-The float64 specification is in `relicgpu.mosaic` (`_led_numpy`, `_block_entropy_numpy`);
-`relicgpu.mosaic.led` and `relicgpu.mosaic.block_entropy` launch these.
+The float64 specification is `relicgpu.backends.numpy` (`led`, `block_entropy`);
+`WarpBackend.led` and `WarpBackend.block_entropy` launch these.
 
 - LED (Eq. 4): a (2A+1)^2 box mean with zeros outside the image, done as two
   separable passes (rows, then columns) so a pixel costs O(A), not O(A^2).

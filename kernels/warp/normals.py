@@ -12,7 +12,7 @@ wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 
 @wp.kernel
-def face_normals_kernel(
+def face_normals(
     vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
     normals: wp.array(dtype=wp.vec3),
@@ -31,7 +31,7 @@ def face_normals_kernel(
 
 
 @wp.kernel
-def edge_angles_kernel(
+def edge_angles(
     normals: wp.array(dtype=wp.vec3),
     edge_faces: wp.array(dtype=wp.vec2i),
     angles: wp.array(dtype=wp.float32),

@@ -1,8 +1,9 @@
 """Backend registry: `numpy`, `warp-cpu`, `warp-cuda[:N]`, `opencl[:PLATFORM]`, and `auto`.
 
-A backend is an object with the functions of `relicgpu.backends.numpy` (the float64
-specification): face_normals, edge_angles, contour_features, flag_matrix,
-lcs_lengths, nearest_neighbors, nearest_index, cross_covariance, and a `name`.
+A backend is a `base.Backend`: the kernel functions of `relicgpu.backends.numpy` (the
+float64 specification) face_normals, edge_angles, contour_features, flag_matrix,
+lcs_lengths, nearest_neighbors, nearest_index (a target prepared once for many
+queries), cross_covariance, and the mosaic's led and block_entropy, plus a `name`.
 `auto` (and the RELICGPU_BACKEND environment variable) chooses one; see `resolve`.
 
 No backend is trusted on sight: `get_backend` runs `selfcheck.run` on it once per
@@ -21,6 +22,7 @@ import numpy as np
 
 from . import numpy as numpy_backend
 from . import selfcheck
+from .base import Backend
 
 
 class BackendError(RuntimeError):
@@ -31,7 +33,7 @@ class BackendRefused(BackendError):
     """A backend that loads but gives wrong answers: it failed its self-check."""
 
 
-def _load(name: str):
+def _load(name: str) -> Backend:
     base, _, arg = name.partition(":")
     if base == "numpy":
         return numpy_backend
@@ -76,7 +78,7 @@ def _load_checked(name: str):
     return backend
 
 
-def get_backend(name: str):
+def get_backend(name: str) -> Backend:
     """The backend called `name` (not `auto`), created and self-checked once per process.
 
     Raises BackendError when it cannot load here, BackendRefused (a BackendError) when
@@ -177,7 +179,7 @@ def fastest_backend() -> str:
     return min(times, key=lambda name: times[name])
 
 
-def resolve(name: str | None = "auto"):
+def resolve(name: str | Backend | None = "auto") -> Backend:
     """The backend object for `name`; `auto`/None honours RELICGPU_BACKEND, else measures."""
     if name is None or name == "auto":
         name = os.environ.get("RELICGPU_BACKEND") or "auto"

@@ -1,4 +1,4 @@
-"""The float64 NumPy reference for the four kernel families.
+"""The float64 NumPy reference for every kernel function of `base.Backend`.
 
 This module is the specification: every other backend implements the same
 functions with the same signatures and is tested against these on random and
@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 name = "numpy"
 
 
-# --- family 1: normal angles -------------------------------------------------
+# --- normals -----------------------------------------------------------------
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (F,3) and areas (F,) of triangles; a zero-area face gets a zero normal."""
@@ -47,7 +47,7 @@ def edge_angles(normals: np.ndarray, edge_faces: np.ndarray) -> np.ndarray:
     return angle
 
 
-# --- family 2: neighbourhood curvature --------------------------------------
+# --- curvature --------------------------------------------------------------
 
 def contour_features(points: np.ndarray, k: int, stride: int) -> np.ndarray:
     """Per point of a closed contour (N,3), the columns
@@ -112,7 +112,7 @@ def contour_features(points: np.ndarray, k: int, stride: int) -> np.ndarray:
     return out
 
 
-# --- family 3: flag matrix and LCS ------------------------------------------
+# --- flags and LCS ----------------------------------------------------------
 
 def flag_matrix(a: np.ndarray, b: np.ndarray, eps: float) -> np.ndarray:
     """Eq. 33: flags[i, j] = |a_i - b_j| < eps (strict), as a bool (len(a), len(b)) array."""
@@ -154,7 +154,7 @@ def lcs_lengths(a_values, a_offsets, b_values, b_offsets, pairs, eps: float) -> 
     return out
 
 
-# --- family 4: ICP nearest neighbours and reductions ------------------------
+# --- nearest neighbours and reductions (ICP) --------------------------------
 
 def nearest_neighbors(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For each source point, the index (int32) of its nearest target point and the distance.
@@ -214,3 +214,32 @@ def cross_covariance(source: np.ndarray, target: np.ndarray, weights: np.ndarray
     ct = (w[:, None] * t).sum(0) / wsum
     h = ((s - cs) * w[:, None]).T @ (t - ct)
     return cs, ct, h, wsum
+
+
+# --- the mosaic's kernels: LED box mean and block entropy ---------------------
+
+def led(image: np.ndarray, half: int) -> np.ndarray:
+    """Eq. 4 in float64: the (2A+1)^2 box sum of `image` (zeros outside) over (2A+1)^2."""
+    e = np.asarray(image, np.float64)
+    k = 2 * half + 1
+    padded = np.pad(e, half + 1)[:-1, :-1]  # one leading zero row/col for the integral image
+    s = padded.cumsum(0).cumsum(1)
+    h, w = e.shape
+    total = s[k:k + h, k:k + w] - s[:h, k:k + w] - s[k:k + h, :w] + s[:h, :w]
+    return total / (k * k)
+
+
+def block_entropy(levels: np.ndarray, block: int, n_levels: int) -> np.ndarray:
+    """Eq. 8 in float64 for every block x block block: out[y, x] = 1 - sum_l P_l^2 of
+    levels[y:y+block, x:x+block], where a level v counts max(0, 1 - |v - l|) in bin l
+    (a plain histogram for integer levels); shape (H-block+1, W-block+1)."""
+    q = np.asarray(levels, np.float64)
+    h, w = q.shape
+    oh, ow = h - block + 1, w - block + 1
+    sq = np.zeros((oh, ow))
+    for lv in range(n_levels):
+        member = np.clip(1.0 - np.abs(q - lv), 0.0, None)
+        s = np.pad(member, ((1, 0), (1, 0))).cumsum(0).cumsum(1)
+        count = s[block:, block:] - s[:oh, block:] - s[block:, :ow] + s[:oh, :ow]
+        sq += count * count
+    return 1.0 - sq / float(block * block) ** 2

@@ -1,12 +1,12 @@
-"""OpenCL backend (pyopencl): the kernel families on any OpenCL platform, PoCL on a
-CPU (all cores) or a GPU vendor's driver.
+"""OpenCL backend (pyopencl): every kernel function of `base.Backend` on any OpenCL
+platform, PoCL on a CPU (all cores) or a GPU vendor's driver.
 
-Kernels live in `relicgpu.kernels.opencl` (kernels/opencl/*.cl). `program(name)`
-builds a source once per process and caches it, with device-dependent options
-(`-DHAVE_FP64` where the device has doubles; for lcs.cl on CPUs,
-`-DRELIC_VECTOR_MASKS=16|8`, the widest vector width whose build passes the LCS
-self-check); other stages can build their own kernels through `program`, `ctx`
-and `queue`. Same functions, signatures and return types as `relicgpu.backends.numpy`.
+Kernels live in `relicgpu.kernels.opencl` (kernels/opencl/*.cl), named as in
+kernels/warp. `program(name)` builds a source once per process and caches it, with
+device-dependent options (`-DHAVE_FP64` where the device has doubles; for lcs.cl on
+CPUs, `-DRELIC_VECTOR_MASKS=16|8`, the widest vector width whose build passes the
+LCS self-check). Same functions, signatures and return types as
+`relicgpu.backends.numpy`.
 
 Import this module before anything else touches pyopencl's devices: it repairs
 PoCL's CPU detection on processors newer than PoCL's LLVM (see
@@ -30,6 +30,7 @@ import numpy as np
 from . import _prep
 
 _REDUCE_THREADS = {"cpu": 256, "gpu": 8192}
+_LOCAL_2D = (16, 4)  # the work-group shape of the image kernels
 _BRUTE_PAIRS = {"cpu": 4_000_000, "gpu": 50_000_000}
 _pocl_cpu_name_buffer = None  # keeps the patched CPU name alive
 
@@ -267,7 +268,14 @@ class OpenCLBackend:
         size = max((n + local - 1) // local * local, local)
         self.cl.enqueue_nd_range_kernel(self.queue, k, (size,), (local,))
 
-    # --- family 1 -----------------------------------------------------------------
+    def _run_2d(self, source: str, name: str, width: int, height: int, *args):
+        """`_run` over a width x height grid of work-items (get_global_id(0) the column)."""
+        k = self.kernel(source, name)
+        k.set_args(*args)
+        size = tuple(max(-(-n // g) * g, g) for n, g in zip((width, height), _LOCAL_2D))
+        self.cl.enqueue_nd_range_kernel(self.queue, k, size, _LOCAL_2D)
+
+    # --- normals ------------------------------------------------------------------
 
     def face_normals(self, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         v = _prep.centred_float32(vertices)
@@ -294,7 +302,7 @@ class OpenCLBackend:
                       np.int32(len(e)), out)
             return self._from_device(out, len(e), np.float32).astype(np.float64)
 
-    # --- family 2 -----------------------------------------------------------------
+    # --- curvature ----------------------------------------------------------------
 
     def contour_features(self, points: np.ndarray, k: int, stride: int) -> np.ndarray:
         p = np.ascontiguousarray(np.asarray(points, np.float64).reshape(-1, 3), self.real)
@@ -306,7 +314,7 @@ class OpenCLBackend:
                       np.int32(k), np.int32(stride), out)
             return self._from_device(out, (len(p), 5), self.real).astype(np.float64)
 
-    # --- family 3 -----------------------------------------------------------------
+    # --- flags and LCS ------------------------------------------------------------
 
     def flag_matrix(self, a: np.ndarray, b: np.ndarray, eps: float) -> np.ndarray:
         a = np.asarray(a, np.float64).ravel()
@@ -340,7 +348,7 @@ class OpenCLBackend:
             lengths = self._from_device(out, batch.n_pairs, np.int32)
         return batch.unsort(lengths)
 
-    # --- family 4 -----------------------------------------------------------------
+    # --- nearest neighbours and reductions ----------------------------------------
 
     def nearest_neighbors(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.nearest_index(target).query(source)
@@ -388,6 +396,30 @@ class OpenCLBackend:
                       *[r(x) for x in ct], np.int32(n), np.int32(threads), part)
             h = self._from_device(part, (threads, 9), r).astype(np.float64).sum(0).reshape(3, 3)
         return cs, ct, h, wsum
+
+    # --- the mosaic's kernels -----------------------------------------------------
+
+    def led(self, image: np.ndarray, half: int) -> np.ndarray:
+        src = np.ascontiguousarray(image, np.float32)
+        h, w = src.shape
+        scale = 1.0 / float((2 * half + 1) ** 2)
+        with self._lock:
+            rows, out = self._empty(src.nbytes), self._empty(src.nbytes)
+            self._run_2d("mosaic.cl", "led_rows", w, h, self._to_device(src), np.int32(h), np.int32(w),
+                         np.int32(half), rows)
+            self._run_2d("mosaic.cl", "led_cols", w, h, rows, np.int32(h), np.int32(w), np.int32(half),
+                         np.float32(scale), out)
+            return self._from_device(out, (h, w), np.float32)
+
+    def block_entropy(self, levels: np.ndarray, block: int, n_levels: int) -> np.ndarray:
+        src = np.ascontiguousarray(levels, np.float32)
+        h, w = src.shape
+        oh, ow = h - block + 1, w - block + 1
+        with self._lock:
+            out = self._empty(4 * oh * ow)
+            self._run_2d("mosaic.cl", "block_entropy", ow, oh, self._to_device(src), np.int32(h), np.int32(w),
+                         np.int32(block), np.int32(n_levels), out)
+            return self._from_device(out, (oh, ow), np.float32)
 
 
 class OpenCLNearestIndex:

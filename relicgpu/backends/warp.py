@@ -1,10 +1,11 @@
-"""NVIDIA Warp backend: the four kernel families on `cpu` or `cuda:N`.
+"""NVIDIA Warp backend: every kernel function of `base.Backend` on `cpu` or `cuda:N`.
 
-Kernels live in `relicgpu.kernels.warp` (kernels/warp/*.py); this module moves
-numpy arrays to the device and back and does the small host-side steps (flag
-intervals, grid sizing, final float64 sums). Same functions, signatures and
-return types as `relicgpu.backends.numpy`. Warp compiles each kernel module once
-per device and caches the binary on disk (~/.cache/warp).
+Kernels live in `relicgpu.kernels.warp` (kernels/warp/*.py), each named as the
+function that launches it; this module moves numpy arrays to the device and back
+and does the small host-side steps (flag intervals, grid sizing, final float64
+sums). Same functions, signatures and return types as `relicgpu.backends.numpy`.
+Warp compiles each kernel module once per device and caches the binary on disk
+(~/.cache/warp).
 """
 from __future__ import annotations
 
@@ -40,9 +41,10 @@ class WarpBackend:
         self.kind = "cpu" if dev.is_cpu else "cuda"
         self.name = "warp-cpu" if dev.is_cpu else f"warp-cuda:{dev.ordinal}"
         self.device_name = dev.name if dev.is_cuda else "CPU (one thread per launch)"
-        from relicgpu.kernels.warp import curvature, icp, lcs, normals
+        from relicgpu.kernels.warp import curvature, icp, lcs, mosaic, normals
 
         self._k_normals, self._k_curv, self._k_lcs, self._k_icp = normals, curvature, lcs, icp
+        self._k_mosaic = mosaic
         self._staging: dict[str, object] = {}  # pinned host buffers for large uploads (CUDA)
         self._staging_lock = threading.Lock()
 
@@ -76,7 +78,7 @@ class WarpBackend:
     def _launch(self, kernel, dim, inputs):
         self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
 
-    # --- family 1 ----------------------------------------------------------------
+    # --- normals -----------------------------------------------------------------
 
     def face_normals(self, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         wp = self.wp
@@ -86,7 +88,7 @@ class WarpBackend:
             return np.zeros((0, 3)), np.zeros(0)
         normals = wp.empty(len(f), dtype=wp.vec3, device=self.device)
         areas = wp.empty(len(f), dtype=wp.float32, device=self.device)
-        self._launch(self._k_normals.face_normals_kernel, len(f),
+        self._launch(self._k_normals.face_normals, len(f),
                      [self._array(v, wp.vec3), self._array(f, wp.vec3i), normals, areas])
         return normals.numpy().astype(np.float64), areas.numpy().astype(np.float64)
 
@@ -97,11 +99,11 @@ class WarpBackend:
         if len(e) == 0:
             return np.zeros(0)
         out = wp.empty(len(e), dtype=wp.float32, device=self.device)
-        self._launch(self._k_normals.edge_angles_kernel, len(e),
+        self._launch(self._k_normals.edge_angles, len(e),
                      [self._array(n, wp.vec3), self._array(e, wp.vec2i), out])
         return out.numpy().astype(np.float64)
 
-    # --- family 2 ----------------------------------------------------------------
+    # --- curvature ---------------------------------------------------------------
 
     def contour_features(self, points: np.ndarray, k: int, stride: int) -> np.ndarray:
         wp = self.wp
@@ -109,11 +111,11 @@ class WarpBackend:
         if len(p) == 0:
             return np.zeros((0, 5))
         out = wp.empty((len(p), 5), dtype=wp.float64, device=self.device)
-        self._launch(self._k_curv.contour_features_kernel, len(p),
+        self._launch(self._k_curv.contour_features, len(p),
                      [self._array(p, wp.vec3d), int(k), int(stride), out])
         return out.numpy()
 
-    # --- family 3 ----------------------------------------------------------------
+    # --- flags and LCS -----------------------------------------------------------
 
     def flag_matrix(self, a: np.ndarray, b: np.ndarray, eps: float) -> np.ndarray:
         wp = self.wp
@@ -124,7 +126,7 @@ class WarpBackend:
         lo, hi = _prep.flag_intervals(a, eps)
         thr = np.ascontiguousarray(np.stack([lo, hi], 1))
         out = wp.empty((len(a), len(b)), dtype=wp.uint8, device=self.device)
-        self._launch(self._k_lcs.flag_matrix_kernel, (len(a), len(b)),
+        self._launch(self._k_lcs.flag_matrix, (len(a), len(b)),
                      [self._array(thr, wp.vec2), self._array(b.astype(np.float32), wp.float32), out])
         return out.numpy().astype(bool)
 
@@ -151,11 +153,11 @@ class WarpBackend:
         out = wp.empty(n, dtype=wp.int32, device=self.device)
         # one thread per pair and few pairs per block, so that a batch of ~10^4 pairs
         # still spreads over every multiprocessor of a large GPU
-        wp.launch(self._k_lcs.lcs_lengths_kernel, dim=n, inputs=[*uploaded["args"], n, out],
+        wp.launch(self._k_lcs.lcs_lengths, dim=n, inputs=[*uploaded["args"], n, out],
                   device=self.device, block_dim=32 if self.kind == "cuda" else 256)
         return out
 
-    # --- family 4 ----------------------------------------------------------------
+    # --- nearest neighbours and reductions ---------------------------------------
 
     def nearest_neighbors(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.nearest_index(target).query(source)
@@ -210,6 +212,27 @@ class WarpBackend:
                      [s_d, t_d, w_d, wp.vec3d(*cs), wp.vec3d(*ct), n, part])
         h = part.numpy().sum(0).reshape(3, 3)
         return cs, ct, h, wsum
+
+    # --- the mosaic's kernels ----------------------------------------------------
+
+    def led(self, image: np.ndarray, half: int) -> np.ndarray:
+        wp = self.wp
+        src = np.ascontiguousarray(image, np.float32)
+        h, w = src.shape
+        rows = wp.empty((h, w), dtype=wp.float32, device=self.device)
+        out = wp.empty((h, w), dtype=wp.float32, device=self.device)
+        self._launch(self._k_mosaic.led_rows, (h, w), [self._array(src, wp.float32), int(half), rows])
+        self._launch(self._k_mosaic.led_cols, (h, w), [rows, int(half), 1.0 / float((2 * half + 1) ** 2), out])
+        return out.numpy()
+
+    def block_entropy(self, levels: np.ndarray, block: int, n_levels: int) -> np.ndarray:
+        wp = self.wp
+        src = np.ascontiguousarray(levels, np.float32)
+        h, w = src.shape
+        out = wp.empty((h - block + 1, w - block + 1), dtype=wp.float32, device=self.device)
+        self._launch(self._k_mosaic.block_entropy, out.shape,
+                     [self._array(src, wp.float32), int(block), int(n_levels), out])
+        return out.numpy()
 
 
 class WarpNearestIndex:
