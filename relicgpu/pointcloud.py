@@ -127,13 +127,19 @@ CLOUD_NORMAL_NEIGHBOURS = 12
 ROUGH_QUANTILE = 0.35
 ROUGH_PARALLEL_POWER = 4
 ROUGH_SPREADS = 1.0
-# Outward orientation (`orient_normals`): viewpoints on a sphere VIEW_DISTANCE cloud radii from
-# its centre, hidden-point removal with flip radius 10 ** HPR_EXPONENT times the farthest point
-# (larger sees more, through sparse walls too), then VOTE_ROUNDS of averaging along the surface.
+# Outward orientation (`orient_normals`): VIEW_DIRECTIONS orthographic views from around the cloud,
+# each a depth buffer over pixels one point spacing wide into which every point is splatted as a
+# disc of SPLAT_PIXELS pixels (closing the gaps of a sparse wall, so nothing is seen through it); a
+# point is seen where it lies within SEEN_DEPTH spacings of the nearest depth at its pixel. Then
+# VOTE_ROUNDS of averaging along the surface, over links straying from the tangent planes less than
+# LINK_OFFSET spacings (`_smooth_links`). Flipped normals, mean over the pieces of 24 synthetic pairs
+# / 12 corpus pairs / 9 bowl-shaped shells 1-4 spacings thick (2,500-6,400 points): hidden-point
+# removal and no offset limit 1.3% / 3.2% / 17%; these 1.2% / 1.8% / 5.5%.
 VIEW_DIRECTIONS = 48
-VIEW_DISTANCE = 3.0
-HPR_EXPONENT = 1.5
+SPLAT_PIXELS = 3.0
+SEEN_DEPTH = 1.0
 VOTE_ROUNDS = 4
+LINK_OFFSET = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,8 +191,8 @@ def local_pca(points: np.ndarray, k: int = CLOUD_NEIGHBOURS) -> tuple[np.ndarray
 def orient_normals(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_NORMAL_NEIGHBOURS) -> np.ndarray:
     """Unoriented (N,3) normals turned outward, by visibility from outside.
 
-    Each point votes for the side it is seen from (`visibility_votes`: hidden-point removal from
-    viewpoints around the cloud); the votes are then averaged a few rounds over links between
+    Each point votes for the side it is seen from (`visibility_votes`: depth buffers of views from
+    around the cloud); the votes are then averaged a few rounds over links between
     near-parallel neighbours that do not cross a thin wall (`_smooth_links`), each neighbour's
     vote carried over with the sign that makes its normal agree with the point's. Points seen
     from no viewpoint (deep in a concavity) take their neighbours' side. Orientation from
@@ -211,19 +217,22 @@ def orient_normals(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_NORMA
 def _smooth_links(points: np.ndarray, normals: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Links (i, j) between k-nearest neighbours on one smooth sheet: near-parallel normals
     (not across a crease) and a link running along the surface (not across a thin wall, whose
-    two faces have parallel normals too). Returns i, j and the sign (+1/-1) of n_i . n_j."""
+    two faces have parallel normals too): at a shallow angle to both tangent planes and straying
+    from them less than LINK_OFFSET point spacings (a wall one or two spacings thick has
+    neighbours across it at shallow angles). Returns i, j and the sign (+1/-1) of n_i . n_j."""
     from scipy.spatial import cKDTree
 
     n = len(points)
-    _, idx = cKDTree(points).query(points, k=min(k + 1, n))
+    dist, idx = cKDTree(points).query(points, k=min(k + 1, n))
+    spacing = float(np.median(dist[:, 1])) if idx.shape[1] > 1 else 0.0
     rows = np.repeat(np.arange(n), idx.shape[1] - 1)
     pairs = np.unique(np.sort(np.stack([rows, idx[:, 1:].ravel()], 1), axis=1), axis=0)
     i, j = pairs[:, 0], pairs[:, 1]
     d = points[j] - points[i]
     length = np.maximum(np.linalg.norm(d, axis=1), 1e-300)
     dot = np.einsum("ij,ij->i", normals[i], normals[j])
-    along = np.maximum(np.abs(np.einsum("ij,ij->i", d, normals[i])), np.abs(np.einsum("ij,ij->i", d, normals[j]))) / length
-    keep = (np.abs(dot) > 0.7) & (along < 0.5)
+    offset = np.maximum(np.abs(np.einsum("ij,ij->i", d, normals[i])), np.abs(np.einsum("ij,ij->i", d, normals[j])))
+    keep = (np.abs(dot) > 0.7) & (offset < 0.5 * length) & (offset < LINK_OFFSET * spacing)
     return i[keep], j[keep], np.sign(dot[keep])
 
 
@@ -234,25 +243,36 @@ def view_directions(n: int) -> np.ndarray:
     return np.stack([np.cos(turn) * np.sin(polar), np.sin(turn) * np.sin(polar), np.cos(polar)], 1)
 
 
-def visibility_votes(points: np.ndarray, normals: np.ndarray, views: int = VIEW_DIRECTIONS,
-                     exponent: float = HPR_EXPONENT) -> np.ndarray:
-    """(N,) sum over viewpoints around the cloud of cos(normal, direction to the viewpoint), over
-    the viewpoints that see the point (Katz et al. 2007 hidden-point removal: a point is seen
-    when its spherical flip about the viewpoint lies on the convex hull; `exponent` sets the
-    flip radius, 10 ** exponent times the farthest point's distance). Positive: the normal
-    points outward."""
-    from scipy.spatial import ConvexHull
+def visibility_votes(points: np.ndarray, normals: np.ndarray, views: int = VIEW_DIRECTIONS) -> np.ndarray:
+    """(N,) sum over views from around the cloud of cos(normal, direction to the viewer), over
+    the views that see the point. Each view is orthographic: a depth buffer of pixels one point
+    spacing wide, every point splatted into it as a disc of SPLAT_PIXELS pixels, so that a sparse
+    wall hides what lies behind it (hidden-point removal, as Katz et al. 2007 do with a spherical
+    flip, saw inner walls through outer ones: 13% of a thin vase piece's normals turned inward).
+    Positive: the normal points outward."""
+    from scipy.spatial import cKDTree
 
-    centre = points.mean(axis=0)
-    radius = float(np.linalg.norm(points - centre, axis=1).max()) or 1.0
+    if len(points) < 2:
+        return np.zeros(len(points))
+    spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1])) or 1.0
+    reach = int(np.ceil(SPLAT_PIXELS))
+    disc = [(du, dv) for du in range(-reach, reach + 1) for dv in range(-reach, reach + 1)
+            if du * du + dv * dv <= SPLAT_PIXELS ** 2]
+    rel = points - points.mean(axis=0)
     vote = np.zeros(len(points))
     for direction in view_directions(views):
-        rel = points - (centre + VIEW_DISTANCE * radius * direction)
-        dist = np.maximum(np.linalg.norm(rel, axis=1), 1e-300)
-        flip = rel * (2.0 * dist.max() * 10.0 ** exponent / dist - 1.0)[:, None]
-        hull = ConvexHull(np.vstack([flip, np.zeros(3)]))
-        seen = hull.vertices[hull.vertices < len(points)]
-        vote[seen] -= np.einsum("ij,ij->i", normals[seen], rel[seen]) / dist[seen]
+        u = np.cross(direction, [1.0, 0.0, 0.0] if abs(direction[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        v = np.cross(direction, u)
+        depth = -(rel @ direction)  # from a viewer far out along `direction`: smaller is nearer
+        iu, iv = (np.floor(rel @ axis / spacing).astype(np.int64) for axis in (u, v))
+        iu, iv = iu - iu.min() + reach, iv - iv.min() + reach
+        height = int(iv.max()) + reach + 1
+        nearest = np.full((int(iu.max()) + reach + 1) * height, np.inf)
+        for du, dv in disc:
+            np.minimum.at(nearest, (iu + du) * height + iv + dv, depth)
+        seen = depth <= nearest[iu * height + iv] + SEEN_DEPTH * spacing
+        vote[seen] += normals[seen] @ direction
     return vote
 
 
