@@ -3,9 +3,11 @@
 
     python scripts/bench_pair.py [--backend numpy] [--repeats 3] [--json out.json]
 
-Pairs come from relicgpu.synth (2-piece vases, tiles and torsos) with `faces` chosen
-so that the two fragments have about the paper's vertex counts. Prints the median
-time per stage (ms) over the repeats and the paper's total beside ours.
+Pairs come from relicgpu.synth (2-piece vases, slabs and torsos) whose two fragments have the
+paper's per-fragment vertex counts within 5% (`CASES`: a shape, seed and `faces` found by a search
+over seeds for the paper's ratio of the two counts, then over `faces` for their sum). Prints the
+median time per stage (ms) over the repeats and the paper's total beside ours, and stops with an
+error where a pair's counts are off by more than 5% (at --size-factor 1).
 """
 from __future__ import annotations
 
@@ -18,7 +20,12 @@ import time
 import numpy as np
 
 PAPER = [(8046, 10314, 1342), (5142, 4408, 892), (7250, 5692, 1311), (15064, 20956, 1890), (12476, 10346, 1420)]
-SHAPES = ["vase", "slab", "torso", "vase", "slab"]
+# (shape, seed, faces, swap): relicgpu.synth.generate(shape, 2, seed, faces, noise=0.0005) gives the
+# paper's pair (swap: its fragments in the other order), vertices 8163/10511, 5235/4321, 7121/5843,
+# 15128/20809 and 12604/10373
+CASES = [("vase", 12, 19394, False), ("torso", 18, 11070, True), ("vase", 27, 13135, False),
+         ("slab", 19, 40721, False), ("slab", 13, 26354, False)]
+MAX_COUNT_ERROR = 0.05
 
 
 def main(argv=None) -> int:
@@ -46,10 +53,15 @@ def main(argv=None) -> int:
     backend = resolve(args.backend)
     params = with_segmentations(Params(), args.segmentation, args.second_segmentation)
     rows = []
-    for (va, vb, paper_ms), shape in list(zip(PAPER, SHAPES))[: args.pairs]:
-        r = synth.generate(shape, pieces=2, seed=7, faces=int((va + vb) * args.size_factor), noise=0.0005)
-        a, b = r.fragments
-        truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
+    for (va, vb, paper_ms), (shape, seed, faces, swap) in list(zip(PAPER, CASES))[: args.pairs]:
+        r = synth.generate(shape, pieces=2, seed=seed, faces=max(200, round(faces * args.size_factor)), noise=0.0005)
+        i, j = (1, 0) if swap else (0, 1)
+        a, b = r.fragments[i], r.fragments[j]
+        off = max(abs(len(a.vertices) / va - 1), abs(len(b.vertices) / vb - 1))
+        if args.size_factor == 1.0 and off > MAX_COUNT_ERROR:
+            raise SystemExit(f"bench_pair: {shape} seed {seed} has {len(a.vertices)}/{len(b.vertices)} vertices, "
+                             f"{off:.1%} off the paper's {va}/{vb} (more than {MAX_COUNT_ERROR:.0%}): update CASES")
+        truth = np.linalg.inv(r.poses[i]) @ r.poses[j]
         scale = pair_scale(a, b, params)
         match_pair(a, b, params, backend, scale=scale)  # warm-up: kernel compiles, caches
         stages: dict[str, list[float]] = {}
