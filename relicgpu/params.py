@@ -20,6 +20,7 @@ class Params:
 
     # segmentation (Alg. 2)
     roughness_rings: int = 3         # neighbourhood (edge steps) for the normal perturbation of a face
+    roughness_spacing: float = 0.02  # ... at this length at least, on finer meshes (segment.working_roughness)
     roughness_threshold_deg: float = 3.0  # fracture is rougher than this (and than Otsu's split of the roughness)
     crease_angle_deg: float = 50.0   # region growing stops at edges whose normals differ more
     vote_rings: int = 2              # fracture/original by a vote of the faces this many edge-steps around

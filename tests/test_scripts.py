@@ -32,6 +32,7 @@ CASES = [
     ("bench_clouds.py", "--pairs 1 --first 2 --modes normals,open --json {tmp}/clouds.json", "clouds.json"),
     ("bench_pointcloud.py", "--points 20000 --source slab --json {tmp}/pc.json", "pc.json"),
     ("bench_segment.py", "--seeds 1 --only synth", None),
+    ("bench_resolution.py", "--names slab --seeds 0 --faces 1500 --roughness-spacing 0,0.02", None),
     ("bench_verify.py", "collect --out {tmp}/fits.pkl --families synth --seeds 0 --faces 1500", "fits.pkl"),
     ("show_synth.py", "--shape slab --pieces 2 -o {tmp}/synth.png", "synth.png"),
 ]
