@@ -678,7 +678,7 @@ def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float
         agree = sum(g.score for g, ok in zip(between, agreeing) if ok)
         others = [g for g, ok in zip(between, agreeing) if not ok]
         # wrong matches scatter: each rival placement is weighed alone, not all disagreeing matches together
-        rival = max((sum(h.score for h in others if agrees(implied(g), h)) for g in others), default=0.0)
+        rival = max((sum(h.score for h in others if agrees(m, h)) for m in map(implied, others)), default=0.0)
         if rival > agree:
             notes[(e.a, e.b)] = "refused: other matches between the two groups agree on another placement"
             continue

@@ -250,11 +250,9 @@ def visibility_votes(points: np.ndarray, normals: np.ndarray, views: int = VIEW_
     wall hides what lies behind it (hidden-point removal, as Katz et al. 2007 do with a spherical
     flip, saw inner walls through outer ones: 13% of a thin vase piece's normals turned inward).
     Positive: the normal points outward."""
-    from scipy.spatial import cKDTree
-
     if len(points) < 2:
         return np.zeros(len(points))
-    spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1])) or 1.0
+    spacing = _median_spacing(points) or 1.0
     reach = int(np.ceil(SPLAT_PIXELS))
     disc = [(du, dv) for du in range(-reach, reach + 1) for dv in range(-reach, reach + 1)
             if du * du + dv * dv <= SPLAT_PIXELS ** 2]

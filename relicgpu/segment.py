@@ -106,14 +106,27 @@ def ring_average(values: np.ndarray, weights: np.ndarray, edge_faces: np.ndarray
     return num / (den[:, None] if values.ndim == 2 else den)
 
 
-def face_roughness(normals: np.ndarray, areas: np.ndarray, edge_faces: np.ndarray, rings: int) -> np.ndarray:
+def face_roughness(normals: np.ndarray, areas: np.ndarray, edge_faces: np.ndarray, rings: int,
+                   k: int = 1) -> np.ndarray:
     """Normal perturbation per face (degrees): the angle between a face's normal and the mean
-    normal of its one-ring, averaged over the faces within `rings` edge-steps."""
-    mean = ring_average(normals, areas, edge_faces, 1)
-    length = np.linalg.norm(mean, axis=1)
-    mean = mean / np.where(length > 0, length, 1)[:, None]
-    angle = np.degrees(np.arccos(np.clip(np.einsum("fd,fd->f", mean, normals), -1, 1)))
-    return ring_average(angle, areas, edge_faces, rings)
+    normal of its one-ring, averaged over the faces within `rings` edge-steps. At k edges' length
+    (k > 1): the normal averaged over k - 1 rings against the one over 2k - 1, averaged over
+    k * rings."""
+    def unit(x):
+        length = np.linalg.norm(x, axis=1)
+        return x / np.where(length > 0, length, 1)[:, None]
+
+    near = normals if k == 1 else unit(ring_average(normals, areas, edge_faces, k - 1))
+    wide = unit(ring_average(normals, areas, edge_faces, 2 * k - 1))
+    angle = np.degrees(np.arccos(np.clip(np.einsum("fd,fd->f", wide, near), -1, 1)))
+    return ring_average(angle, areas, edge_faces, k * rings)
+
+
+def weighted_quantile(x: np.ndarray, w: np.ndarray, q):
+    """The w-weighted q-quantile(s) of x (N,), N >= 1 (q a number or an array of them)."""
+    order = np.argsort(x)
+    cum = np.cumsum(w[order])
+    return x[order][np.searchsorted(cum, np.asarray(q) * cum[-1])]
 
 
 # The smoothest SMOOTHEST_SHARE of a mesh's area reading rougher than NOISY_FLOOR times the roughness
@@ -143,19 +156,9 @@ def working_roughness(v: np.ndarray, f: np.ndarray, normals: np.ndarray, areas: 
     fine = face_roughness(normals, areas, smooth_edges, params.roughness_rings)
     edges = np.linalg.norm(v[f[:, [1, 2, 0]]] - v[f], axis=2)
     k = int(round(params.roughness_spacing * scale / max(float(np.median(edges)), 1e-300))) if len(f) else 1
-    if k <= 1:
+    if k <= 1 or weighted_quantile(fine, areas, SMOOTHEST_SHARE) <= NOISY_FLOOR * params.roughness_threshold_deg:
         return fine
-    order = np.argsort(fine)
-    share = np.cumsum(areas[order]) / max(float(areas.sum()), 1e-300)
-    if fine[order][min(np.searchsorted(share, SMOOTHEST_SHARE), len(f) - 1)] <= NOISY_FLOOR * params.roughness_threshold_deg:
-        return fine
-
-    def unit(x):
-        return x / np.maximum(np.linalg.norm(x, axis=1), 1e-300)[:, None]
-
-    near, wide = (unit(ring_average(normals, areas, smooth_edges, r)) for r in (k - 1, 2 * k - 1))
-    angle = np.degrees(np.arccos(np.clip(np.einsum("fd,fd->f", near, wide), -1, 1)))
-    return ring_average(angle, areas, smooth_edges, k * params.roughness_rings)
+    return face_roughness(normals, areas, smooth_edges, params.roughness_rings, k)
 
 
 def roughness_threshold(rough: np.ndarray, areas: np.ndarray, params: Params) -> float:
@@ -270,9 +273,7 @@ def _hybrid_labels(first: tuple, second: tuple, rough: np.ndarray, areas: np.nda
     both_skin = (p1[r1] <= 0.5) & (p2[r2] <= 0.5)
     floor = HYBRID_FLOOR_DEG
     if both_skin.any():
-        order = np.argsort(rough[both_skin])
-        cum = np.cumsum(areas[both_skin][order])
-        floor = max(float(rough[both_skin][order][np.searchsorted(cum, 0.5 * cum[-1])]), HYBRID_FLOOR_DEG)
+        floor = max(float(weighted_quantile(rough[both_skin], areas[both_skin], 0.5)), HYBRID_FLOOR_DEG)
     n = int(region.max()) + 1
     mean_rough = np.bincount(region, weights=areas * rough, minlength=n) / np.maximum(
         np.bincount(region, weights=areas, minlength=n), 1e-300)

@@ -55,7 +55,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .params import Params
-from .segment import Topology, _components, _merge_small, ring_average
+from .segment import Topology, _components, _merge_small, ring_average, weighted_quantile
 
 # Where the break is rough, regions at least this much (log units) smoother than the area-weighted
 # median of the rough regions are skin too (`region_fracture_prob`): chosen on synth slabs and
@@ -504,7 +504,7 @@ def region_fracture_prob(cues: RegionCues, skin: np.ndarray, seed: int, params: 
     # where the break is rough, a region nearer (in log roughness) the skin than the break's typical
     # roughness is skin: a slab's sharp-edged sides are a little rougher than its faces, far smoother than a cut
     broken = rest & (rough > params.region_context_rough)
-    mode = _weighted_median(rough[broken], cues.area[broken]) if broken.any() else 0.0
+    mode = float(weighted_quantile(rough[broken], cues.area[broken], 0.5)) if broken.any() else 0.0
     other_side = rough_break * step(max(params.region_context_smooth, mode - MODE_GAP) - rough)
     thin = float(wall < params.region_thin_wall)
     wide = thin * step(cue("log_width_size") - np.log(params.region_band_walls * wall + 1e-6)) * smooth
@@ -521,13 +521,6 @@ def region_fracture_prob(cues: RegionCues, skin: np.ndarray, seed: int, params: 
     grown = np.maximum(0.5 * step(rough - params.region_curved_rough),
                        rough_break * step(rough - params.region_grown_rough))
     return np.where(skin, grown, prob)
-
-
-def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
-    """The w-weighted median of x (N,), N >= 1."""
-    order = np.argsort(x)
-    cum = np.cumsum(w[order])
-    return float(x[order][np.searchsorted(cum, 0.5 * cum[-1])])
 
 
 def cue_labels(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, areas: np.ndarray, topo: Topology,
@@ -698,9 +691,7 @@ def wall_thickness(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, 
     has = np.isfinite(depth) & (depth > 1e-3 * size)
     if areas[idx][has].sum() < 0.5 * areas[idx].sum():
         return np.inf
-    order = np.argsort(depth[has])
-    w = np.cumsum(areas[idx][has][order])
-    q25, q50, q75 = depth[has][order][np.searchsorted(w, np.array([0.25, 0.5, 0.75]) * w[-1])]
+    q25, q50, q75 = weighted_quantile(depth[has], areas[idx][has], [0.25, 0.5, 0.75])
     return float(q50) / size if q75 < 2 * q25 else np.inf  # a wall is about as thick everywhere
 
 

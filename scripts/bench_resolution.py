@@ -22,13 +22,9 @@ import numpy as np
 
 def verdict(a, b, truth, match) -> tuple[str, float]:
     """'right', 'WRONG' or 'miss', and the rotation error in degrees, of a match carrying b onto a."""
-    from relicgpu.icp import rotation_angle_deg
+    from bench_clouds import score  # the same measure as the cloud benchmark's
 
-    rot = rotation_angle_deg(match.transform[:3, :3] @ truth[:3, :3].T)
-    moved = b.vertices @ match.transform[:3, :3].T + match.transform[:3, 3]
-    true = b.vertices @ truth[:3, :3].T + truth[:3, 3]
-    size = float(np.ptp(np.vstack([a.vertices, true]), axis=0).max())
-    rms = float(np.sqrt(np.mean(np.sum((moved - true) ** 2, axis=1)))) / size
+    rot, rms = score(a, b, truth, match.transform)
     if not match.accepted:
         return "miss", rot
     return ("right" if rot < 2.0 and rms < 0.01 else "WRONG"), rot
