@@ -11,7 +11,7 @@ the time of each stage.
     python scripts/bench_assembly.py --scale-only --backend warp-cuda --json out.json
     python scripts/bench_assembly.py --readings 2 --shapes vase --pieces 10 --seeds 0 --backend numpy
 
-Prints tables; --json also writes all figures there. Synthetic data is kept under --work between runs, named by its settings and the source of relicgpu/synth.py (never reused from an older synth).
+Prints tables; --json also writes all figures there. Synthetic data is kept under --work between runs, named by its settings and the source of relicgpu/synth/ (never reused from an older synth).
 """
 from __future__ import annotations
 
@@ -86,8 +86,9 @@ def run_one(frag_dir: Path, truth: dict, args, out_dir: Path | None = None) -> d
 
 def synth_dir(work: Path, **settings) -> Path:
     """A synthetic break kept under `work` between runs, named by its settings and by the source
-    of relicgpu/synth.py: data from an older synth (or other --faces) is never silently reused."""
-    code = hashlib.sha256(Path(synth.__file__).read_bytes()).hexdigest()[:8]
+    of relicgpu/synth/: data from an older synth (or other --faces) is never silently reused."""
+    source = b"".join(p.read_bytes() for p in sorted(Path(synth.__file__).parent.glob("*.py")))
+    code = hashlib.sha256(source).hexdigest()[:8]
     name = "_".join(str(v) for v in settings.values())
     d = work / f"{name}_{code}"
     if not (d / "truth.json").exists():

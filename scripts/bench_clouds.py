@@ -7,7 +7,7 @@
 
 Pair k is relicgpu.synth's two-piece {vase, torso, slab}[k % 3] of seed k // 3 (4,000 faces,
 scanner noise 0.05% of the size), or with --source corpus the clean two-piece object of
-relicgpu.corpus family {rough, smooth, voronoi, vessel}-clean [k % 4] of seed k // 4; each piece becomes --points points drawn from its surface
+relicgpu.synth.corpus family {rough, smooth, voronoi, vessel}-clean [k % 4] of seed k // 4; each piece becomes --points points drawn from its surface
 (seed 100 k + i) with Gaussian noise of --noise times the piece's size, with the true normals
 (`normals`), with none (`none`), or as the mesh itself with three holes cut into its skin
 (`open`). A pair is right when `match_pair` accepts it with a rotation error under 2 degrees and
@@ -38,7 +38,8 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
     """The two fragments of pair k in `mode` and the truth carrying b onto a."""
     import trimesh
 
-    from relicgpu import corpus, synth
+    from relicgpu import synth
+    from relicgpu.synth import corpus
     from relicgpu.pointcloud import cloud_fragment
 
     if source == "corpus":

@@ -1,6 +1,6 @@
 """How the pipeline holds on fractures it was not tuned on (issue 16): one row per family.
 
-Families come from `relicgpu.corpus` (fracture kind x scan kind, twelve in all) and the
+Families come from `relicgpu.synth.corpus` (fracture kind x scan kind, twelve in all) and the
 ../shared/realdata sets with a known answer; the first row, "synth", is the control: the
 project's own generator, where the pipeline was tuned. Per row:
 
@@ -30,8 +30,8 @@ import time
 
 import numpy as np
 
-from relicgpu import corpus
 from relicgpu.evaluate import relative_pose_error, score
+from relicgpu.synth import corpus
 from relicgpu.icp import invert
 from relicgpu.params import SEGMENTATIONS, Params, with_segmentations
 

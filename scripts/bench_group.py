@@ -41,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from relicgpu import grouping as G  # noqa: E402
 from relicgpu import synth  # noqa: E402
+from relicgpu.synth.generator import _AREA_GUESS, _AREA_GUESS_FILE  # noqa: E402
 from relicgpu.io import Fragment  # noqa: E402
 
 SHAPES = ("vase", "torso", "slab", "tube", "ring", "brick", "capsule", "bowl")
@@ -99,9 +100,9 @@ def synth_faces(shape: str, pieces: int, spacing: float) -> int:
     """The `faces` argument that makes synth.generate sample the object at `spacing` object units
     (synth.generate's own rule for its sampling density, inverted)."""
     if shape in synth.SHAPES:
-        area, frac_area, c_orig, c_frac = synth._AREA_GUESS[shape]
+        area, frac_area, c_orig, c_frac = _AREA_GUESS[shape]
     else:
-        _, frac_area, c_orig, c_frac = synth._AREA_GUESS_FILE
+        _, frac_area, c_orig, c_frac = _AREA_GUESS_FILE
         area = NORMALISED_AREA[shape]
     return int(round((c_orig * area + c_frac * frac_area * (pieces - 1) ** 0.75) / (pieces * spacing ** 2)))
 

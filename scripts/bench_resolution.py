@@ -5,7 +5,7 @@
     python scripts/bench_resolution.py --source corpus --names rough-noisy,vessel-noisy --seeds 1 --faces 16000
     python scripts/bench_resolution.py --roughness-spacing 0,0.02     # the old roughness beside today's
 
-Each object is relicgpu.synth's (noise 0.05% of the size) or relicgpu.corpus's two-piece object of
+Each object is relicgpu.synth's (noise 0.05% of the size) or relicgpu.synth.corpus's two-piece object of
 --faces faces a piece; `match_pair` runs once per value of --roughness-spacing
 (`Params.roughness_spacing`; 0: the roughness at the mesh's own edges). A pair is right when
 accepted with a rotation error under 2 degrees and the moved piece within 1% RMS of its place
@@ -41,7 +41,8 @@ def main(argv=None) -> int:
     ap.add_argument("--backend", default="numpy")
     args = ap.parse_args(argv)
 
-    from relicgpu import corpus, synth
+    from relicgpu import synth
+    from relicgpu.synth import corpus
     from relicgpu.params import Params
     from relicgpu.pipeline import match_pair
 

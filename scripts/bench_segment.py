@@ -2,7 +2,7 @@
 
 Area-weighted face recall / precision of `relicgpu.segment` against each generator's labels, a row
 per family and a column pair per `Params.segmentation` method: relicgpu.synth shapes (vase, torso,
-slab; --synth-noise, 0 being the assembly grid's), relicgpu.corpus families (where that module is
+slab; --synth-noise, 0 being the assembly grid's), relicgpu.synth.corpus families (where that module is
 present) and the ../shared/realdata Blender sets (corpus.realdata). Families marked * were held out
 when the "hybrid" thresholds (segment.HYBRID_*, segment_cues.MODE_GAP and crease_regions' wide
 creases) were chosen: voronoi-*, vessel-* and the Blender sets (the earlier "regions" fit held out
@@ -33,7 +33,7 @@ def cases(seeds, synth_noise, only, pieces=0):
                 yield f"synth-{shape}-noise{noise}", lambda shape=shape, s=s, noise=noise: synth.generate(
                     shape, pieces=pieces or (2 if s % 2 == 0 else 5), seed=s, faces=4000, noise=noise)
     try:
-        from relicgpu import corpus
+        from relicgpu.synth import corpus
     except ImportError:
         return
     for fam in corpus.FAMILIES:

@@ -53,7 +53,8 @@ def _label(rot: float, rms: float) -> str:
 
 def _cases(args):
     """(family, seed, kind, a, b, truth, size) for every case asked for."""
-    from relicgpu import corpus, synth
+    from relicgpu import synth
+    from relicgpu.synth import corpus
 
     from bench_clouds import CORPUS, make_pair
 
@@ -284,7 +285,8 @@ def truth_samples(result, n_points: int = 1500) -> list:
 
 def forest(args) -> int:
     """Assembly with one wrong match among the right ones: part accuracy without and with recovery."""
-    from relicgpu import assembly, corpus, synth
+    from relicgpu import assembly, synth
+    from relicgpu.synth import corpus
     from relicgpu.assembly import Edge, _finish_groups, closed_solid, grow_forest
     from relicgpu.backends import numpy as ref
     from relicgpu.evaluate import score

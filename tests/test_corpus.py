@@ -1,4 +1,4 @@
-"""relicgpu.corpus: every family builds, its labels lie on the cuts, poses and contacts are the truth."""
+"""relicgpu.synth.corpus: every family builds, its labels lie on the cuts, poses and contacts are the truth."""
 import json
 import subprocess
 import sys
@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from relicgpu import corpus, synth
+from relicgpu import synth
+from relicgpu.synth import corpus
 
 ROOT = Path(__file__).resolve().parents[1]
 _CACHE: dict = {}

@@ -8,6 +8,7 @@ import pytest
 
 from relicgpu import grouping as G
 from relicgpu import synth
+from relicgpu.synth.generator import _AREA_GUESS
 from relicgpu.io import Fragment, FragmentError
 
 
@@ -21,7 +22,7 @@ EDGE = 0.03  # one scan resolution for the whole heap, absolute units
 
 def _faces_at(shape, pieces, spacing):
     """synth.generate's `faces` for sampling `shape` at `spacing` object units (its own rule inverted)."""
-    area, frac_area, c_orig, c_frac = synth._AREA_GUESS[shape]
+    area, frac_area, c_orig, c_frac = _AREA_GUESS[shape]
     return int(round((c_orig * area + c_frac * frac_area * (pieces - 1) ** 0.75) / (pieces * spacing ** 2)))
 
 

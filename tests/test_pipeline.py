@@ -115,10 +115,10 @@ def test_a_fragment_without_fracture_is_sampled_whole_with_uniform_weights():
 
 
 def test_a_wrong_fit_of_a_thin_wall_is_refused_for_not_facing():
-    """On a thin-walled vessel of another generator (relicgpu.corpus, coarse scan) the best fit
+    """On a thin-walled vessel of another generator (relicgpu.synth.corpus, coarse scan) the best fit
     lays one wall along the other, skin to skin: without the facing and sunk-surface checks it
     is accepted at a wrong pose; with them it is refused, and no wrong pose is accepted."""
-    from relicgpu import corpus
+    from relicgpu.synth import corpus
     from relicgpu.params import Params
     from relicgpu.pipeline import pair_scale, prepare
     from relicgpu.verify import facing_share, verify
@@ -148,10 +148,10 @@ def test_a_wrong_fit_of_a_thin_wall_is_refused_for_not_facing():
 
 
 def test_a_pair_the_first_segmentation_misreads_is_matched_on_the_second():
-    """A thin-walled vessel of another generator (relicgpu.corpus, clean scan): the roughness
+    """A thin-walled vessel of another generator (relicgpu.synth.corpus, clean scan): the roughness
     vote misreads its wall ends, and no fit is found on that reading alone; matched again on
     the second segmentation (Params.second_segmentation, "hybrid"), the true pose is accepted."""
-    from relicgpu import corpus
+    from relicgpu.synth import corpus
     from relicgpu.params import Params
     from relicgpu.pipeline import pair_scale, prepare, with_fragment
 

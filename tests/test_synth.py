@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from relicgpu import synth
+from relicgpu.synth.scanning import _vertex_normals
 from relicgpu.io import FragmentError, count_bodies, is_watertight, load_directory, load_fragment
 
 FACES = 1500
@@ -157,7 +158,7 @@ def test_noise_moves_vertices_along_normals_by_sigma():
     for fc, fn in zip(clean.fragments, noisy.fragments):
         assert np.array_equal(fc.faces, fn.faces), "noise must not change the cut or the mesh"
         d = fn.vertices - fc.vertices
-        normals = synth._vertex_normals(fc.vertices, fc.faces.astype(np.int64))
+        normals = _vertex_normals(fc.vertices, fc.faces.astype(np.int64))
         along = np.einsum("ij,ij->i", d, normals)
         assert np.allclose(np.linalg.norm(d, axis=1), np.abs(along), atol=1e-12)
         assert 0.0017 < along.std() < 0.0023

@@ -244,7 +244,7 @@ def test_a_clean_smooth_break_is_matched_on_its_crease_regions():
     """A break with no roughness (a smooth cut of the independent corpus, not relicgpu.synth)."""
     import trimesh
 
-    from relicgpu import corpus
+    from relicgpu.synth import corpus
     from relicgpu.pointcloud import cloud_fragment
 
     r = corpus.generate("smooth-clean", pieces=2, seed=0, faces=4000)

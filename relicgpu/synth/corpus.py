@@ -38,8 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Fragment
-from .synth import SynthResult, _invert_rigid, _point_triangle_distance, _random_placement, _touching_pairs
+from ..io import Fragment
+from .scanning import _invert_rigid, _random_placement
+from .truth import SynthResult, _point_triangle_distance, _touching_pairs
 
 FRACTURES = ("rough", "smooth", "voronoi", "vessel")
 SCANS = ("clean", "noisy", "coarse")
@@ -48,7 +49,7 @@ SOLIDS = ("pebble", "block", "jar")  # of the non-vessel kinds, chosen by seed
 COARSE_FACES = 300  # faces a piece of a coarse scan, on average
 MIN_VOLUME_SHARE = 0.15  # a piece below this share of the mean piece volume makes the cut be drawn again
 MAX_ATTEMPTS = 80
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+REALDATA = Path(__file__).resolve().parents[3] / "shared" / "realdata"
 REALDATA_SETS = ("blender_cube_20_seed_2", "blender_cylinder_20_seed_3")
 REAL_CONTACT = 0.005  # fracture faces of real sets: within this share of the object size of another piece
 
