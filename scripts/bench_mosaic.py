@@ -129,6 +129,7 @@ def run(n_pairs: int, seed: int, backend_name: str, progress: bool = True, noise
 
     from relicgpu import mosaic
     from relicgpu.backends import resolve
+    from relicgpu.mosaic.fcm import _feature_geometry
 
     backend = resolve(backend_name)
     samples = load_samples()
@@ -166,7 +167,7 @@ def run(n_pairs: int, seed: int, backend_name: str, progress: bool = True, noise
                 region = mosaic.find_feature_region(pl, params, backend)
                 centre, tw = region.centre, region.width
             except mosaic.MosaicError:
-                tw, (c0, c1), (r0, r1) = mosaic._feature_geometry(pair["shape"][1], pair["shape"][0], params)
+                tw, (c0, c1), (r0, r1) = _feature_geometry(pair["shape"][1], pair["shape"][0], params)
                 centre = ((r0 + r1) // 2, (c0 + c1) // 2)
             found = np.full(2, np.inf)
             rec.update(accepted=False)

@@ -8,6 +8,7 @@ import pytest
 from scipy import ndimage
 
 from relicgpu import mosaic as M
+from relicgpu.mosaic import register as R
 
 # --- 3.3.1: median filter, Eq. 1-3: local normalisation -------------------------------
 
@@ -419,19 +420,19 @@ def test_decide_needs_a_margin_and_votes():
     same = _placement((200, 300), (190.5, 100.0), 0.93, k=1)     # another region, 0.5 px from a's placement
     rival = _placement((100, 300), (90, 130), 0.92, k=0)         # 30 px away
     near = _placement((100, 300), (93, 100), 0.99, k=0, refined=False)  # within distinct_px: the same placement
-    assert M._placement_distance(a, same) == pytest.approx(0.5)
-    best, margin = M._decide([a, near], p, final=False)
+    assert R._placement_distance(a, same) == pytest.approx(0.5)
+    best, margin = R._decide([a, near], p, final=False)
     assert best is None  # one region only, and not the last
-    best, margin = M._decide([a, near], p, final=True)
+    best, margin = R._decide([a, near], p, final=True)
     assert best is a and margin == pytest.approx(0.95 + 1.0)
-    best, margin = M._decide([a, same, near], p, final=False)
+    best, margin = R._decide([a, same, near], p, final=False)
     assert best is a  # two regions refined onto it
     better = _placement((200, 300), (190.2, 100.0), 0.97, k=1)  # within a pixel of a, correlating higher
-    assert M._decide([a, better], p, final=False)[0] is a  # the earlier region's (the paper's) is reported
-    best, margin = M._decide([a, same, rival], p, final=True)
+    assert R._decide([a, better], p, final=False)[0] is a  # the earlier region's (the paper's) is reported
+    best, margin = R._decide([a, same, rival], p, final=True)
     assert best is None and margin == pytest.approx(0.03)  # a rival within min_margin
     low = _placement((100, 300), (90, 100), 0.4, k=0)
-    assert M._decide([low], p, final=True)[0] is None  # below min_correlation
+    assert R._decide([low], p, final=True)[0] is None  # below min_correlation
 
 
 def test_overlap_correlation_ignores_a_smooth_gradient():
