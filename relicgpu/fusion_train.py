@@ -19,155 +19,29 @@ fragment splicing can be reduced". Here the weights are fitted on synthetic brea
   are true (within 1% of s); the best few are then judged by pair success of match_pair
   started from the LCS alone (every other start source off).
 
-Only this module imports torch (lazily, inside the functions that train); the data and
-scoring helpers are plain NumPy and serve scripts/bench_fusion.py too. Inference is
-relicgpu.fusion (NumPy).
+Only this module imports torch (lazily, inside the functions that train); the training
+pairs are made by relicgpu.fusion_data, and they and the scoring helpers here are plain
+NumPy and serve scripts/bench_fusion.py too. Inference is relicgpu.fusion (NumPy).
 """
 from __future__ import annotations
 
-import hashlib
-import json
-import pickle
 import sys
-import tempfile
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from . import fusion as fusion_mod
-from .features import dimensionless
+from .backends import resolve
+from .cli import CliError
+from .fusion_data import TRUE_WITHIN, PairData, _move, build_pairs, contour_inputs, object_specs
+from .icp import ransac_poses
+from .lcs import circular_lcs
 from .params import Params
+from .pipeline import match_pair
 
-SHAPES = ("vase", "torso", "slab")
-TRUE_WITHIN = 0.01  # a correspondence is true within this share of the pair scale
 NEGATIVE_BEYOND = 0.03  # a negative (non-corresponding) pair lies at least this far apart
-CACHE_VERSION = 1
-
-
-# --- data ------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class ObjectSpec:
-    shape: str
-    pieces: int
-    seed: int
-    noise: float
-
-
-@dataclass(eq=False)
-class PairData:
-    """One touching pair of a synthetic object, prepared at the pair scale."""
-    spec: ObjectSpec
-    i: int  # fragment a
-    j: int  # fragment b
-    scale: float
-    prepared_a: object  # relicgpu.pipeline.Prepared
-    prepared_b: object
-    truth: np.ndarray  # (4,4) carrying b's file coordinates onto a's
-    inputs_a: list  # per contour of a: (N,8) fusion inputs [g, f]
-    inputs_b: list
-    moved_b: list  # per contour of b: (N,3) points moved onto a by the truth
-    corr: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.int64))  # (K,4) [ca, ia, cb, ib]
-
-
-def object_specs(count: int, seed: int, shapes=SHAPES, pieces=(2, 3, 4), noises=(0.0, 0.0005, 0.001)) -> list[ObjectSpec]:
-    """`count` synthetic objects cycling through the shapes, pieces and noise levels; the
-    synth seeds start at `seed` (keep training, validation and benchmark ranges apart)."""
-    out = []
-    for k in range(count):  # every combination of shape, noise and pieces within the first few
-        out.append(ObjectSpec(shapes[k % len(shapes)], int(pieces[(k // (len(shapes) * len(noises))) % len(pieces)]),
-                              seed + k, float(noises[(k // len(shapes)) % len(noises)])))
-    return out
-
-
-def contour_inputs(contour, scale: float, params: Params) -> np.ndarray:
-    """The fusion inputs of a prepared contour (the same f the pipeline fuses)."""
-    f = dimensionless(contour.features, params.contour_step * scale * params.feature_stride)
-    return fusion_mod.fusion_inputs(f)
-
-
-def _move(t: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return p @ t[:3, :3].T + t[:3, 3]
-
-
-def true_correspondences(points_a: list, moved_b: list, within: float) -> np.ndarray:
-    """(K,4) [ca, ia, cb, ib]: each point of b's contours (moved onto a) with the nearest
-    point of a's contours, when that is within `within`."""
-    from scipy.spatial import cKDTree
-
-    if not points_a or not moved_b:
-        return np.zeros((0, 4), np.int64)
-    pa = np.concatenate(points_a)
-    owner = np.concatenate([np.stack([np.full(len(p), c), np.arange(len(p))], 1) for c, p in enumerate(points_a)])
-    out = []
-    tree = cKDTree(pa)
-    for cb, q in enumerate(moved_b):
-        d, k = tree.query(q)
-        ok = np.flatnonzero(d <= within)
-        out.append(np.stack([owner[k[ok], 0], owner[k[ok], 1], np.full(len(ok), cb), ok], 1))
-    return np.concatenate(out).astype(np.int64) if out else np.zeros((0, 4), np.int64)
-
-
-_DATA_MODULES = ("synth", "pipeline", "segment", "contour", "features", "icp", "verify", "params", "backends/numpy")
-
-
-def _code_hash() -> str:
-    """Hash of the code that makes the cached pairs: a change to it makes them again."""
-    h = hashlib.sha256()
-    base = Path(__file__).parent
-    for mod in _DATA_MODULES:
-        p = base / f"{mod}.py"
-        h.update(p.read_bytes() if p.exists() else b"-")
-    return h.hexdigest()[:16]
-
-
-def build_pairs(specs: list[ObjectSpec], params: Params | None = None, faces: int = 4000,
-                pairs_per_object: int = 2, progress: bool = True, cache_dir=None, desc: str = "pairs") -> list[PairData]:
-    """Generate the objects, prepare up to `pairs_per_object` touching pairs of each (numpy
-    backend) and find their true correspondences. Cached under `cache_dir` (default: the
-    system temp dir) by the specs, the parameters and the code that makes them."""
-    from tqdm import tqdm
-
-    from . import synth
-    from .pipeline import prepare
-
-    params = params or Params()
-    key = json.dumps([CACHE_VERSION, _code_hash(), [s.__dict__ for s in specs], faces, pairs_per_object,
-                      {k: v for k, v in params.to_dict().items() if k != "fusion_weights"}], sort_keys=True)
-    cache = Path(cache_dir or tempfile.gettempdir()) / "relicgpu-fusion-cache"
-    path = cache / (hashlib.sha256(key.encode()).hexdigest()[:24] + ".pkl")
-    if path.exists():
-        try:
-            with open(path, "rb") as fh:
-                return pickle.load(fh)
-        except Exception:  # a stale or broken cache file is made again
-            pass
-    plain = params.with_(fusion_weights=None)
-    out = []
-    for spec in tqdm(specs, desc=desc, disable=not progress, file=sys.stderr):
-        r = synth.generate(spec.shape, pieces=spec.pieces, seed=spec.seed, faces=faces, noise=spec.noise,
-                           progress=False)
-        # spread the chosen pairs over the object's touching list
-        chosen = r.touching[:: max(1, len(r.touching) // pairs_per_object)][:pairs_per_object]
-        for i, j in chosen:
-            a, b = r.fragments[i], r.fragments[j]
-            scale = 0.5 * (a.size + b.size)
-            pa = prepare(a, plain, "numpy", scale=scale)
-            pb = prepare(b, plain, "numpy", scale=scale)
-            truth = np.linalg.inv(r.poses[i]) @ r.poses[j]
-            moved = [_move(truth, c.points) for c in pb.contours]
-            corr = true_correspondences([c.points for c in pa.contours], moved, TRUE_WITHIN * scale)
-            out.append(PairData(spec, i, j, scale, pa, pb, truth,
-                                [contour_inputs(c, scale, plain) for c in pa.contours],
-                                [contour_inputs(c, scale, plain) for c in pb.contours], moved, corr))
-    cache.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    with open(tmp, "wb") as fh:
-        pickle.dump(out, fh, protocol=pickle.HIGHEST_PROTOCOL)
-    tmp.replace(path)
-    return out
 
 
 # --- scoring (NumPy) ---------------------------------------------------------
@@ -185,9 +59,6 @@ class LcsScore:
 def lcs_score(pair: PairData, model, eps: float) -> LcsScore:
     """Run the circular LCS of match_pair over every contour pair with `model`'s fused values
     and count the correspondences that are true."""
-    from .backends import resolve
-    from .lcs import circular_lcs
-
     be = resolve("numpy")
     fa = [fusion_mod.forward(model, x) for x in pair.inputs_a]
     fb = [fusion_mod.forward(model, x) for x in pair.inputs_b]
@@ -230,10 +101,6 @@ def lcs_check(pair: PairData, model, params: Params | None = None) -> LcsCheck:
     every contour pair, RANSAC poses over its correspondences (same seed, iterations and
     inlier distance as match_pair), and whether one of those starts is near the true pose.
     Cheap (no ICP, no verification): it isolates what the fusion changes."""
-    from .backends import resolve
-    from .icp import ransac_poses
-    from .lcs import circular_lcs
-
     params = params or Params()
     be = resolve("numpy")
     fa = [fusion_mod.forward(model, x) for x in pair.inputs_a]
@@ -268,8 +135,6 @@ def with_model(prepared, model, params: Params | None = None):
 def pair_result(pair: PairData, model, params: Params | None = None) -> tuple[bool, float, object]:
     """match_pair with `model`'s fused values: (correct, pose error, PairMatch). Correct = accepted
     with b's vertices within 1% of the object size (synth objects have unit size) RMS of the truth."""
-    from .pipeline import match_pair
-
     params = (params or Params()).with_(second_segmentation=None)  # the model's own contours only
     pa, pb = with_model(pair.prepared_a, model, params), with_model(pair.prepared_b, model, params)
     m = match_pair(pa, pb, params, "numpy", scale=pair.scale)
@@ -518,8 +383,6 @@ def cli_add_arguments(parser) -> None:
 
 
 def cli_main(args) -> int:
-    from .cli import CliError
-
     out = Path(args.out)
     if out.suffix != ".npz":
         raise CliError(f"{out}: the weights file must end in .npz")

@@ -42,6 +42,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from relicgpu import fusion as fusion_mod  # noqa: E402
+from relicgpu import fusion_data as fd  # noqa: E402
 from relicgpu import fusion_train as ft  # noqa: E402
 from relicgpu.io import atomic_write_json  # noqa: E402
 from relicgpu.params import Params  # noqa: E402
@@ -55,9 +56,9 @@ HAND_MIX = (0.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.5, 0.5)
 NOISES = (0.0, 0.0005, 0.001)
 
 
-def bench_specs(count: int, seed: int) -> list[ft.ObjectSpec]:
-    shapes = ft.SHAPES
-    return [ft.ObjectSpec(shapes[k % 3], 2 + (k // 3) % 5, seed + k, NOISES[(k // 15) % 3]) for k in range(count)]
+def bench_specs(count: int, seed: int) -> list[fd.ObjectSpec]:
+    shapes = fd.SHAPES
+    return [fd.ObjectSpec(shapes[k % 3], 2 + (k // 3) % 5, seed + k, NOISES[(k // 15) % 3]) for k in range(count)]
 
 
 _STATE: dict = {}
@@ -67,11 +68,11 @@ def _init(models, paths, full, full_lcs_only, cache_dir):
     _STATE.update(models=models, paths=paths, full=full, full_lcs_only=full_lcs_only, cache_dir=cache_dir)
 
 
-def evaluate_object(spec: ft.ObjectSpec) -> list[dict]:
+def evaluate_object(spec: fd.ObjectSpec) -> list[dict]:
     """Every fusion on the touching pairs of one object: one row per pair."""
     models, paths = _STATE["models"], _STATE["paths"]
     rows = []
-    for pair in ft.build_pairs([spec], progress=False, cache_dir=_STATE["cache_dir"]):
+    for pair in fd.build_pairs([spec], progress=False, cache_dir=_STATE["cache_dir"]):
         row = {"spec": spec.__dict__, "i": pair.i, "j": pair.j}
         for name, model in models.items():
             params = Params(fusion_weights=str(paths[name]))
@@ -88,9 +89,9 @@ def evaluate_object(spec: ft.ObjectSpec) -> list[dict]:
     return rows
 
 
-def check_swap(spec: ft.ObjectSpec, models, paths, cache_dir) -> None:
+def check_swap(spec: fd.ObjectSpec, models, paths, cache_dir) -> None:
     """The swapped fused values are what prepare makes with each weights file."""
-    pair = ft.build_pairs([spec], progress=False, cache_dir=cache_dir)[0]
+    pair = fd.build_pairs([spec], progress=False, cache_dir=cache_dir)[0]
     for name, model in models.items():
         p = prepare(pair.prepared_a.fragment, Params(fusion_weights=str(paths[name])), "numpy", scale=pair.scale)
         q = ft.with_model(pair.prepared_a, model)
@@ -165,7 +166,7 @@ def main(argv=None) -> int:
     names = list(models)
     table = summarise(rows, names)
     print(f"{len(rows)} held-out pairs from {used} objects (seeds {args.seed}..{args.seed + used - 1}, shapes "
-          f"{', '.join(ft.SHAPES)}, 2-6 pieces, noise 0-0.001), {args.workers} workers, {elapsed:.0f} s")
+          f"{', '.join(fd.SHAPES)}, 2-6 pieces, noise 0-0.001), {args.workers} workers, {elapsed:.0f} s")
     cols = [("LCS true share", "lcs_true_share", ".4f"), ("LCS starts ok", "lcs_starts_ok", ".3f")]
     if not args.skip_full:
         cols += [("pairs ok", "pair_success", ".3f"), ("median err", "median_pose_error", ".2e")]

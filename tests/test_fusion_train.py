@@ -10,14 +10,15 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from relicgpu import fusion as fusion_mod  # noqa: E402
+from relicgpu import fusion_data as fd  # noqa: E402
 from relicgpu import fusion_train as ft  # noqa: E402
 from relicgpu.params import Params  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def tiny_pairs(tmp_path_factory):
-    specs = [ft.ObjectSpec("slab", 2, 3, 0.0), ft.ObjectSpec("vase", 2, 4, 0.0005)]
-    return ft.build_pairs(specs, faces=1500, progress=False, cache_dir=tmp_path_factory.mktemp("cache"))
+    specs = [fd.ObjectSpec("slab", 2, 3, 0.0), fd.ObjectSpec("vase", 2, 4, 0.0005)]
+    return fd.build_pairs(specs, faces=1500, progress=False, cache_dir=tmp_path_factory.mktemp("cache"))
 
 
 def test_numpy_forward_equals_torch_forward():
@@ -37,7 +38,7 @@ def test_true_correspondences_are_near_in_the_object_frame(tiny_pairs):
         ca, ia, cb, ib = p.corr.T
         a_pts = np.array([p.prepared_a.contours[c].points[i] for c, i in zip(ca, ia)])
         b_pts = np.array([p.moved_b[c][i] for c, i in zip(cb, ib)])
-        assert np.all(np.linalg.norm(a_pts - b_pts, axis=1) <= ft.TRUE_WITHIN * p.scale + 1e-12)
+        assert np.all(np.linalg.norm(a_pts - b_pts, axis=1) <= fd.TRUE_WITHIN * p.scale + 1e-12)
         # and b's contour points are truly moved: most lie near a's contours
         assert len(p.corr) > 0.3 * min(len(pa), sum(len(m) for m in p.moved_b))
 
