@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from relicgpu.backends import available_backends, get_backend  # noqa: E402
 from relicgpu.backends import numpy as reference  # noqa: E402
+from relicgpu.backends.base import DeviceTiming  # noqa: E402
 
 SECTIONS = ("normals", "curvature", "lcs", "nn", "cov", "match")
 SIZES = {
@@ -173,13 +174,9 @@ def run_kernels(names, sections, sizes, repeats, max_seconds, rows, log):
                 record("lcs_screen", cells, name, case,
                        lambda: be.lcs_lengths(values, offsets, values, offsets, grid, 0.05),
                        work=cells, unit="cells/s", est=cells * ref_cell_s if name == "numpy" else None)
-                if getattr(be, "kind", None) == "cuda":
-                    from relicgpu.backends._prep import LcsBatch
-                    uploaded = be.lcs_upload(LcsBatch(values, offsets, values, offsets, grid, 0.05, sort_pairs=True))
-
-                    def kernel_only():
-                        be.lcs_run(uploaded)
-                        be.wp.synchronize_device(be.device)
+                kernel_only = be.device_kernel("lcs", values, offsets, values, offsets, grid, 0.05) \
+                    if isinstance(be, DeviceTiming) else None
+                if kernel_only is not None:
                     record("lcs_screen(kernel only)", cells, name, case, kernel_only, work=cells, unit="cells/s")
             record("lcs_screen", cells, "numpy-bitparallel", case,
                    lambda: lcs_bitparallel_numpy(values, offsets, grid, 0.05), work=cells, unit="cells/s",
@@ -196,14 +193,8 @@ def run_kernels(names, sections, sizes, repeats, max_seconds, rows, log):
             for name, be in backends.items():
                 record("nearest_neighbors", n, name, case, lambda: be.nearest_neighbors(src, dst),
                        est=n * 4e-6 if name == "numpy" else None)
-                dev = getattr(be, "nearest_neighbors_device", None)
-                if dev is not None and be.kind == "cuda":
-                    wp = be.wp
-                    s_d, d_d = wp.array(src, dtype=wp.vec3d, device=be.device), wp.array(dst, dtype=wp.vec3d, device=be.device)
-
-                    def on_device():
-                        dev(s_d, d_d)
-                        wp.synchronize_device(be.device)
+                on_device = be.device_kernel("nearest", src, dst) if isinstance(be, DeviceTiming) else None
+                if on_device is not None:
                     record("nearest_neighbors(device-resident)", n, name, case, on_device)
             record("nearest_neighbors", n, "scipy-ckdtree-all-cores", case,
                    lambda: cKDTree(dst).query(src, k=1, workers=-1), baseline=True)

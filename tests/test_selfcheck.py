@@ -164,10 +164,11 @@ def test_pocl_16_wide_masks_are_refused_where_wrong_and_8_wide_chosen(tmp_path):
     code = textwrap.dedent("""
         import json
         from relicgpu.backends import selfcheck
-        from relicgpu.backends.opencl import OpenCLBackend, _REPAIRED_POCL_CPU
+        from relicgpu.backends.opencl import OpenCLBackend
+        from relicgpu.backends.pocl import repair_pocl_cpu_name
         forced = OpenCLBackend("Portable", lcs_masks=16)
         chosen = OpenCLBackend("Portable")
-        print(json.dumps({"cpu": _REPAIRED_POCL_CPU, "device": forced.device.version,
+        print(json.dumps({"cpu": repair_pocl_cpu_name(), "device": forced.device.version,
                           "forced": selfcheck.check_family(forced, "lcs"),
                           "chosen": chosen.default_options("lcs.cl"), "refused": chosen.lcs_masks_refused,
                           "chosen_check": selfcheck.run(chosen)}))

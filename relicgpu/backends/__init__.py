@@ -23,6 +23,8 @@ import numpy as np
 from . import numpy as numpy_backend
 from . import selfcheck
 from .base import Backend
+from .opencl import OpenCLBackend, platform_names
+from .warp import WarpBackend, _quiet_warp
 
 
 class BackendError(RuntimeError):
@@ -38,13 +40,10 @@ def _load(name: str) -> Backend:
     if base == "numpy":
         return numpy_backend
     if base == "warp-cpu":
-        from .warp import WarpBackend
         return WarpBackend("cpu")
     if base == "warp-cuda":
-        from .warp import WarpBackend
         return WarpBackend(f"cuda:{arg or 0}")
     if base == "opencl":
-        from .opencl import OpenCLBackend
         return OpenCLBackend(arg or None)
     raise BackendError(f"unknown backend {name!r}; choose from numpy, warp-cpu, warp-cuda[:N], opencl[:PLATFORM], auto")
 
@@ -113,7 +112,6 @@ def candidate_backends() -> list[str]:
     names = ["numpy", "warp-cpu"]
     try:
         import warp as wp
-        from .warp import _quiet_warp
         _quiet_warp(wp)
         wp.init()
         names += [f"warp-cuda:{d.ordinal}" for d in wp.get_cuda_devices()]
@@ -121,7 +119,6 @@ def candidate_backends() -> list[str]:
         pass
     try:
         # through the backend module: it must repair PoCL before devices are listed
-        from .opencl import platform_names
         names += [f"opencl:{name}" for name in platform_names()]
     except Exception:
         pass

@@ -3,11 +3,12 @@
 `relicgpu.backends.numpy` (a module, float64) is the specification; `WarpBackend` and
 `OpenCLBackend` implement the same members with the same signatures, NumPy arrays in
 and out, and are self-checked against it (`selfcheck`). Code outside
-`relicgpu.backends` calls these members only.
+`relicgpu.backends` calls these members only (a benchmark also `DeviceTiming`'s, where a
+backend offers it).
 """
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import Callable, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -222,5 +223,28 @@ class Backend(Protocol):
         entropy : (h - block + 1, w - block + 1) float
             Entry (y, x) is the block whose top-left is (y, x); float64 from the
             reference, float32 from a device.
+        """
+        ...
+
+
+@runtime_checkable
+class DeviceTiming(Protocol):
+    """Optional, for benchmarks: a backend whose kernels run on a device apart from the
+    host (Warp on CUDA) can time a kernel alone, its inputs already on the device."""
+
+    def device_kernel(self, family: str, *inputs) -> Callable[[], None] | None:
+        """A callable that runs one kernel family on `inputs` uploaded once, and waits for it.
+
+        Parameters
+        ----------
+        family : str
+            "lcs" (inputs: those of `lcs_lengths`) or "nearest" (inputs: source, target
+            of `nearest_neighbors`).
+        *inputs : np.ndarray and scalars
+
+        Returns
+        -------
+        run : callable or None
+            None where the kernels run on the host (there is no transfer to leave out).
         """
         ...

@@ -5,6 +5,9 @@ import json
 import os
 import sys
 
+from . import (BackendError, BackendRefused, candidate_backends, fastest_backend, get_backend, probe_times,
+               selfcheck_results)
+
 
 def cli_add_arguments(parser) -> None:
     parser.add_argument("--no-probe", action="store_true",
@@ -18,8 +21,6 @@ def _device_name(backend) -> str:
 
 def _status(name: str) -> tuple[str, str, str | None]:
     """(state, device or reason, what the self-check says) of one candidate backend."""
-    from . import BackendError, BackendRefused, get_backend, selfcheck_results
-
     try:
         backend = get_backend(name)
     except BackendRefused as exc:
@@ -37,8 +38,6 @@ def _status(name: str) -> tuple[str, str, str | None]:
 
 
 def cli_main(args) -> int:
-    from . import candidate_backends, fastest_backend, get_backend, probe_times
-
     rows = []
     for name in candidate_backends():
         state, device, check = _status(name)

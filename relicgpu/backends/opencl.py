@@ -8,120 +8,33 @@ CPUs, `-DRELIC_VECTOR_MASKS=16|8`, the widest vector width whose build passes th
 LCS self-check). Same functions, signatures and return types as
 `relicgpu.backends.numpy`.
 
-Import this module before anything else touches pyopencl's devices: it repairs
-PoCL's CPU detection on processors newer than PoCL's LLVM (see
-`_repair_pocl_cpu_name`).
+Go through this module before anything else touches pyopencl's devices: listing the
+platforms or making a backend first repairs PoCL's CPU detection on processors newer
+than PoCL's LLVM (`pocl.repair_pocl_cpu_name`).
 """
 from __future__ import annotations
 
-import ctypes
 import importlib.resources
-import importlib.util
-import mmap
-import os
-import platform as _platform
-import struct
-import sys
 import threading
 from pathlib import Path
 
 import numpy as np
 
-from . import _prep
+from ._prep import (LcsBatch, centred_float32, check_edge_faces, check_faces, choose_cell_size, flag_intervals,
+                    grid_dims, nn_source, nn_target)
+from .pocl import repair_pocl_cpu_name
+from .selfcheck import check_family
 
 _REDUCE_THREADS = {"cpu": 256, "gpu": 8192}
 _LOCAL_2D = (16, 4)  # the work-group shape of the image kernels
 _BRUTE_PAIRS = {"cpu": 4_000_000, "gpu": 50_000_000}
-_pocl_cpu_name_buffer = None  # keeps the patched CPU name alive
 
 
-def _host_llvm_cpu() -> str:
-    """An LLVM CPU name that the host can run, from /proc/cpuinfo flags."""
-    flags: set[str] = set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-                break
-    except OSError:
-        pass
-    if {"avx512f", "avx512bw", "avx512vl", "avx512dq", "avx512cd"} <= flags:
-        return "skylake-avx512"
-    if {"avx2", "fma", "bmi2"} <= flags:
-        return "haswell"
-    if "sse4_2" in flags:
-        return "nehalem"
-    return "x86-64"
-
-
-def _repair_pocl_cpu_name() -> str | None:
-    """Give PoCL a CPU target it can compile for, where it cannot find one itself.
-
-    The PoCL on PyPI (pocl-binary-distribution 3.0, PoCL 3.0-rc2 with LLVM 14, the
-    newest there) asks LLVM for the host CPU name; on CPUs newer than LLVM 14 (AMD
-    Zen 5) LLVM answers "generic", which clang then rejects ("unknown target CPU
-    'generic'", pocl issue #1049), so every program build fails. PoCL 3.0 reads no
-    setting for its CPU target (no environment variable, and build options do not
-    reach its code generator), and the wheel links LLVM statically with -Bsymbolic,
-    so the name cannot be interposed either. What is left, and what this does: the
-    exported `pocl_get_llvm_cpu_name` is overwritten in memory with a jump to
-    strdup(<a name LLVM knows>), chosen from the CPU's feature flags. Whatever it
-    compiles is then self-checked against the NumPy reference like any backend.
-
-    Runs when PoCL reports "generic", or always with RELICGPU_POCL_CPU=<LLVM CPU name>
-    (to choose PoCL's target by hand, e.g. `haswell`); only on x86-64 Linux, and
-    before pyopencl first lists devices. RELICGPU_POCL_NO_REPAIR=1 skips it.
-    Returns the name written, or None when nothing was done."""
-    global _pocl_cpu_name_buffer
-    if _pocl_cpu_name_buffer is not None or os.environ.get("RELICGPU_POCL_NO_REPAIR"):
-        return None
-    if _platform.system() != "Linux" or _platform.machine() != "x86_64":
-        return None
-    wanted = os.environ.get("RELICGPU_POCL_CPU") or None
-    spec = importlib.util.find_spec("pyopencl")
-    if spec is None or not spec.submodule_search_locations:
-        return None
-    libdir = Path(list(spec.submodule_search_locations)[0]) / ".libs"
-    candidates = sorted(libdir.glob("libpocl*.so*")) if libdir.is_dir() else []
-    try:
-        lib = ctypes.CDLL(str(candidates[0]), mode=ctypes.RTLD_GLOBAL)
-        func = lib.pocl_get_llvm_cpu_name
-    except (IndexError, OSError, AttributeError):
-        if wanted:
-            print(f"relicgpu: warning: RELICGPU_POCL_CPU={wanted} ignored: pyopencl here does not carry the "
-                  "PoCL of pocl-binary-distribution", file=sys.stderr)
-        return None
-    func.restype = ctypes.c_void_p
-    libc = ctypes.CDLL(None)
-    libc.free.argtypes = [ctypes.c_void_p]
-    ptr = func()
-    current = ctypes.string_at(ptr).decode() if ptr else ""
-    libc.free(ptr)
-    if current != "generic" and wanted is None:
-        return None
-    name = wanted or _host_llvm_cpu()
-    _pocl_cpu_name_buffer = ctypes.create_string_buffer(name.encode())
-    strdup = ctypes.cast(libc.strdup, ctypes.c_void_p).value
-    addr = ctypes.cast(func, ctypes.c_void_p).value
-    # mov rdi, <name>; mov rax, strdup; jmp rax  (a tail call: the caller frees the copy)
-    code = (b"\x48\xbf" + struct.pack("<Q", ctypes.addressof(_pocl_cpu_name_buffer))
-            + b"\x48\xb8" + struct.pack("<Q", strdup) + b"\xff\xe0")
-    page = addr & ~(mmap.PAGESIZE - 1)
-    span = (addr + len(code) - page + mmap.PAGESIZE - 1) // mmap.PAGESIZE * mmap.PAGESIZE
-    libc.mprotect.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
-    if libc.mprotect(ctypes.c_void_p(page), span, 7) != 0:
-        _pocl_cpu_name_buffer = None
-        return None
-    ctypes.memmove(addr, code, len(code))
-    libc.mprotect(ctypes.c_void_p(page), span, 5)
-    return name
-
-
-_REPAIRED_POCL_CPU = _repair_pocl_cpu_name()
 
 
 def platform_names() -> list[str]:
     """Names of the OpenCL platforms that have at least one device."""
+    repair_pocl_cpu_name()
     import pyopencl as cl
 
     names = []
@@ -161,6 +74,7 @@ class OpenCLBackend:
         None: the first platform with a device). `lcs_masks` forces the LCS kernel's
         vector width (16, 8 or 0 for scalar); by default a CPU takes the widest whose
         build passes the LCS self-check, a GPU the scalar kernel."""
+        repair_pocl_cpu_name()
         import pyopencl as cl
 
         self.cl = cl
@@ -201,7 +115,6 @@ class OpenCLBackend:
         and the first that agrees with the reference is kept (0, scalar, if neither)."""
         with self._lock:
             if self.lcs_masks is None:
-                from .selfcheck import check_family
                 for width in (16, 8):
                     self.lcs_masks = width
                     why = check_family(self, "lcs")
@@ -278,8 +191,8 @@ class OpenCLBackend:
     # --- normals ------------------------------------------------------------------
 
     def face_normals(self, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        v = _prep.centred_float32(vertices)
-        f = _prep.check_faces(faces, len(v))
+        v = centred_float32(vertices)
+        f = check_faces(faces, len(v))
         if len(f) == 0:
             return np.zeros((0, 3)), np.zeros(0)
         with self._lock:
@@ -293,7 +206,7 @@ class OpenCLBackend:
 
     def edge_angles(self, normals: np.ndarray, edge_faces: np.ndarray) -> np.ndarray:
         n = np.ascontiguousarray(np.asarray(normals, np.float64).reshape(-1, 3), np.float32)
-        e = _prep.check_edge_faces(edge_faces, len(n))
+        e = check_edge_faces(edge_faces, len(n))
         if len(e) == 0:
             return np.zeros(0)
         with self._lock:
@@ -321,7 +234,7 @@ class OpenCLBackend:
         b = np.asarray(b, np.float64).ravel()
         if len(a) == 0 or len(b) == 0:
             return np.zeros((len(a), len(b)), bool)
-        lo, hi = _prep.flag_intervals(a, eps)
+        lo, hi = flag_intervals(a, eps)
         thr = np.ascontiguousarray(np.stack([lo, hi], 1))
         with self._lock:
             out = self._empty(len(a) * len(b))
@@ -334,7 +247,7 @@ class OpenCLBackend:
             return self._from_device(out, (len(a), len(b)), np.uint8).astype(bool)
 
     def lcs_lengths(self, a_values, a_offsets, b_values, b_offsets, pairs, eps: float) -> np.ndarray:
-        batch = _prep.LcsBatch(a_values, a_offsets, b_values, b_offsets, pairs, eps,
+        batch = LcsBatch(a_values, a_offsets, b_values, b_offsets, pairs, eps,
                                sort_pairs=self.kind == "gpu")
         if batch.n_pairs == 0:
             return np.zeros(0, np.int32)
@@ -355,7 +268,7 @@ class OpenCLBackend:
 
     def nearest_index(self, target: np.ndarray) -> "OpenCLNearestIndex":
         """The target uploaded and (when queries need it) sorted into a grid once, for many queries."""
-        dst = _prep.nn_target(target)
+        dst = nn_target(target)
         return OpenCLNearestIndex(self, dst)
 
     def _bounds(self, points_d, n: int):
@@ -443,7 +356,7 @@ class OpenCLNearestIndex:
 
     def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         be = self.be
-        src = _prep.nn_source(source)
+        src = nn_source(source)
         ns = len(src)
         if ns == 0:
             return np.zeros(0, np.int32), np.zeros(0)
@@ -472,7 +385,7 @@ class OpenCLNearestIndex:
 
     def _count(self, points, n: int, h: float):
         be, cl = self.be, self.be.cl
-        dims = _prep.grid_dims(self.extent, h)
+        dims = grid_dims(self.extent, h)
         cells = int(np.prod(dims))
         if self._counts is None or self._cells < cells + 1:
             self._counts, self._cells = be._empty(4 * (cells + 1)), cells + 1
@@ -504,6 +417,6 @@ class OpenCLNearestIndex:
             self._count(self.dst32, self.n, h)
             return int(be._from_device(self._occupied, 1, np.int32)[0])
 
-        h = _prep.choose_cell_size(self.extent, self.n, occupied_at)
+        h = choose_cell_size(self.extent, self.n, occupied_at)
         starts, sorted_points, sorted_ids = self._sort_into_cells(self.dst32, self.n, h)
-        return h, _prep.grid_dims(self.extent, h), starts, sorted_points, sorted_ids
+        return h, grid_dims(self.extent, h), starts, sorted_points, sorted_ids

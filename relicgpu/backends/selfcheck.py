@@ -17,8 +17,9 @@ import functools
 
 import numpy as np
 
+import relicgpu.backends.numpy as ref
+
 from ..segment import mesh_topology
-from . import numpy as ref
 
 FAMILIES = ("normals", "curvature", "flags", "lcs", "nearest", "covariance", "mosaic")
 

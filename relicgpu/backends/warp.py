@@ -13,7 +13,8 @@ import threading
 
 import numpy as np
 
-from . import _prep
+from ._prep import (LcsBatch, centred_float32, check_edge_faces, check_faces, choose_cell_size, flag_intervals,
+                    grid_dims, nn_source, nn_target, parallel_copy)
 
 # Warp's CPU device runs a launch on one thread; brute force beats building a
 # grid below these many (source x target) pairs.
@@ -70,7 +71,7 @@ class WarpBackend:
             buf = wp.empty(max(n, int(1.25 * (buf.shape[0] if buf is not None else 0))), dtype=wp.vec3d,
                            device="cpu", pinned=True)
             self._staging[slot] = buf
-        _prep.parallel_copy(buf.numpy()[:n], points)
+        parallel_copy(buf.numpy()[:n], points)
         out = wp.empty(n, dtype=wp.vec3d, device=self.device)
         wp.copy(out, buf, count=n)
         return out
@@ -82,8 +83,8 @@ class WarpBackend:
 
     def face_normals(self, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         wp = self.wp
-        v = _prep.centred_float32(vertices)
-        f = _prep.check_faces(faces, len(v))
+        v = centred_float32(vertices)
+        f = check_faces(faces, len(v))
         if len(f) == 0:
             return np.zeros((0, 3)), np.zeros(0)
         normals = wp.empty(len(f), dtype=wp.vec3, device=self.device)
@@ -95,7 +96,7 @@ class WarpBackend:
     def edge_angles(self, normals: np.ndarray, edge_faces: np.ndarray) -> np.ndarray:
         wp = self.wp
         n = np.ascontiguousarray(np.asarray(normals, np.float64).reshape(-1, 3), np.float32)
-        e = _prep.check_edge_faces(edge_faces, len(n))
+        e = check_edge_faces(edge_faces, len(n))
         if len(e) == 0:
             return np.zeros(0)
         out = wp.empty(len(e), dtype=wp.float32, device=self.device)
@@ -123,7 +124,7 @@ class WarpBackend:
         b = np.asarray(b, np.float64).ravel()
         if len(a) == 0 or len(b) == 0:
             return np.zeros((len(a), len(b)), bool)
-        lo, hi = _prep.flag_intervals(a, eps)
+        lo, hi = flag_intervals(a, eps)
         thr = np.ascontiguousarray(np.stack([lo, hi], 1))
         out = wp.empty((len(a), len(b)), dtype=wp.uint8, device=self.device)
         self._launch(self._k_lcs.flag_matrix, (len(a), len(b)),
@@ -131,13 +132,13 @@ class WarpBackend:
         return out.numpy().astype(bool)
 
     def lcs_lengths(self, a_values, a_offsets, b_values, b_offsets, pairs, eps: float) -> np.ndarray:
-        batch = _prep.LcsBatch(a_values, a_offsets, b_values, b_offsets, pairs, eps,
+        batch = LcsBatch(a_values, a_offsets, b_values, b_offsets, pairs, eps,
                                sort_pairs=self.kind == "cuda")
         if batch.n_pairs == 0:
             return np.zeros(0, np.int32)
         return batch.unsort(self.lcs_run(self.lcs_upload(batch)).numpy())
 
-    def lcs_upload(self, batch: "_prep.LcsBatch") -> dict:
+    def lcs_upload(self, batch: "LcsBatch") -> dict:
         """The device arrays of a prepared batch (split out so a benchmark can time the kernel alone)."""
         wp = self.wp
         return {"n_pairs": batch.n_pairs,
@@ -164,7 +165,7 @@ class WarpBackend:
 
     def nearest_index(self, target: np.ndarray) -> "WarpNearestIndex":
         """The target uploaded and (when queries need it) sorted into a grid once, for many queries."""
-        dst = _prep.nn_target(target)
+        dst = nn_target(target)
         with self._staging_lock:
             return WarpNearestIndex(self, self._upload_vec3d(dst, "target"))
 
@@ -235,6 +236,32 @@ class WarpBackend:
         return out.numpy()
 
 
+    # --- benchmarks (base.DeviceTiming) ---------------------------------------------
+
+    def device_kernel(self, family: str, *inputs):
+        """On CUDA, a callable that runs the "lcs" or "nearest" kernels on `inputs` uploaded
+        once and waits for the device (the kernel alone, transfers left out); None on the CPU."""
+        if self.kind != "cuda":
+            return None
+        wp = self.wp
+        if family == "lcs":
+            uploaded = self.lcs_upload(LcsBatch(*inputs, sort_pairs=True))
+
+            def run():
+                self.lcs_run(uploaded)
+                wp.synchronize_device(self.device)
+        elif family == "nearest":
+            source, target = inputs
+            s_d, d_d = wp.array(source, dtype=wp.vec3d, device=self.device), wp.array(target, dtype=wp.vec3d,
+                                                                                        device=self.device)
+
+            def run():
+                self.nearest_neighbors_device(s_d, d_d)
+                wp.synchronize_device(self.device)
+        else:
+            raise ValueError(f"device_kernel: unknown family {family!r}; choose lcs or nearest")
+        return run
+
 class WarpNearestIndex:
     """A target point set on the device for repeated nearest-neighbour queries (an ICP's
     rounds): uploaded, bounded and shifted once; its grid built at the first query that
@@ -252,7 +279,7 @@ class WarpNearestIndex:
         self._counts = None  # per-cell counts, then the scatter's cursors
 
     def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        src = _prep.nn_source(source)
+        src = nn_source(source)
         if len(src) == 0:
             return np.zeros(0, np.int32), np.zeros(0)
         with self.be._staging_lock:  # the staging buffers are reused once the results are back
@@ -280,7 +307,7 @@ class WarpNearestIndex:
 
     def _count(self, points, h: float, occupied=None) -> int:
         be, wp = self.be, self.be.wp
-        dims = _prep.grid_dims(self.extent, h)
+        dims = grid_dims(self.extent, h)
         cells = int(np.prod(dims))
         if self._counts is None or self._counts.shape[0] < cells + 1:
             self._counts = wp.zeros(cells + 1, dtype=wp.int32, device=be.device)
@@ -295,7 +322,7 @@ class WarpNearestIndex:
     def _sort_into_cells(self, points, h: float):
         be, wp = self.be, self.be.wp
         cells = self._count(points, h)
-        dims = wp.vec3i(*_prep.grid_dims(self.extent, h))
+        dims = wp.vec3i(*grid_dims(self.extent, h))
         starts = wp.empty(cells + 1, dtype=wp.int32, device=be.device)
         wp.utils.array_scan(self._counts[: cells + 1], starts, inclusive=False)
         self._counts.zero_()
@@ -314,6 +341,6 @@ class WarpNearestIndex:
             self._count(self.dst32, h, occupied)
             return int(occupied.numpy()[0])
 
-        h = _prep.choose_cell_size(self.extent, self.n, occupied_at)
+        h = choose_cell_size(self.extent, self.n, occupied_at)
         starts, sorted_points, sorted_ids = self._sort_into_cells(self.dst32, h)
-        return h, wp.vec3i(*_prep.grid_dims(self.extent, h)), starts, sorted_points, sorted_ids
+        return h, wp.vec3i(*grid_dims(self.extent, h)), starts, sorted_points, sorted_ids
