@@ -1,7 +1,8 @@
 """relicgpu: reassemble broken 3-D objects from fragment scans on GPU-portable kernels."""
 from __future__ import annotations
 
-from .io import Fragment, FragmentError, load_fragment
+from .io.fragment import Fragment, FragmentError
+from .io.load import load_fragment
 
 __version__ = "0.1.0"
 

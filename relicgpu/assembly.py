@@ -21,7 +21,6 @@ started again recomputes only what was not finished.
 """
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math
@@ -33,11 +32,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Batch, Fragment, FragmentError, atomic_write_bytes, atomic_write_json, grouped_lines, read_batch
-from .icp import apply, invert
+from .backends import numpy as numpy_backend, resolve
+from .engines import Job, make_engine
+from .io.files import atomic_write_bytes, atomic_write_json
+from .io.fragment import Fragment, FragmentError
+from .io.load import Batch, read_batch
+from .icp import apply, invert, kabsch
 from .outputs import assembly_glb, closed_solid, merged_solid, write_outputs  # noqa: F401 (re-exported)
 from .params import Params
-from .pipeline import with_fragment
+from .pipeline import match_pair, ppf_points, prepare, with_fragment
+from .ppf import pair_table, vote_poses
 
 CACHE_VERSION = 1
 # Screening: each fragment keeps its TOP_K best partners by screening score; a pair
@@ -449,8 +453,6 @@ def select_candidates(scores: np.ndarray, k: int) -> list[tuple[int, int]]:
 
 def screen_tables(sample, params: Params, scale: float, n_points: int = SCREEN_PPF_POINTS):
     """A fragment's small point-pair tables (model, scene) for the screen."""
-    from .pipeline import ppf_points
-    from .ppf import pair_table
     pts, nrm = ppf_points(sample, n_points)
     step = params.ppf_distance_step * scale
     return (pair_table(pts, nrm, step, params.ppf_angle_step_deg),
@@ -459,7 +461,6 @@ def screen_tables(sample, params: Params, scale: float, n_points: int = SCREEN_P
 
 def ppf_support(pairs, tables: dict, params: Params, scale: float) -> list[tuple[int, int, float]]:
     """(i, j, support of the best pose cluster carrying j onto i) for each pair."""
-    from .ppf import vote_poses
     out = []
     for i, j in pairs:
         votes = vote_poses(tables[i][0], tables[j][1], 2 * params.ppf_distance_step * scale, keep=1)
@@ -499,8 +500,6 @@ def _ppf_screen_job(payload, *prepared):
 
 def _match_job(payload, *prepared):
     """Match a chunk of pairs; payload = (pairs, needs, params, backend, scale)."""
-    from .backends import resolve
-    from .pipeline import match_pair
     pairs, needs, params, backend_name, scale = payload
     be = resolve(backend_name)
     by_index = dict(zip(needs, prepared))
@@ -774,9 +773,6 @@ def refine_poses(pose: list, group: list[int], used: list[Edge], samples: list,
     this halves the rotation RMSE, where ICP of each fragment against its placed
     neighbours' fracture points did not, being biased by the independent remeshing.)
     """
-    from .backends import numpy as ref
-    from .icp import kabsch
-
     pose = [None if p is None else np.array(p) for p in pose]
     neighbours: dict[int, list] = {}
     for e in used:
@@ -792,7 +788,7 @@ def refine_poses(pose: list, group: list[int], used: list[Edge], samples: list,
                 continue
             target = np.concatenate([_apply(pose[j] @ t, src) for j, t, _ in neighbours[i]])
             weights = np.repeat([max(w, 1e-6) for _, _, w in neighbours[i]], len(src))
-            cs, ct, h, _ = ref.cross_covariance(np.tile(src, (len(neighbours[i]), 1)), target, weights)
+            cs, ct, h, _ = numpy_backend.cross_covariance(np.tile(src, (len(neighbours[i]), 1)), target, weights)
             pose[i] = kabsch(cs, ct, h)
     return pose
 
@@ -847,9 +843,6 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     objects: optional class per fragment (relicgpu.grouping's labels): only pairs within one
     class are matched, in one run over the whole heap (one engine, all pairs in parallel).
     """
-    from .backends import resolve
-    from .engines import Job, make_engine
-
     params = params or Params()
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
@@ -998,8 +991,6 @@ def _record(a: int, b: int, doc: dict, note: str) -> MatchRecord:
 
 def _prepare_one(payload, fragment):
     """Prepare one fragment; the fragment is left out of the result (the caller has it)."""
-    from .backends import resolve
-    from .pipeline import prepare
     _, params, backend_name, scale = payload
     return with_fragment(prepare(fragment, params, resolve(backend_name), scale=scale, with_second=True), None)
 
@@ -1020,82 +1011,3 @@ def _finish_groups(pose: list, group: list[int]) -> tuple[list, list[int]]:
             groups[i] = label
             poses[i] = anchor @ pose[i] if len(m) > 1 else None
     return poses, groups
-
-
-# --- command line ---------------------------------------------------------------------------
-
-def cli_add_arguments(parser) -> None:
-    parser.add_argument("directory", help="directory of fragment files (STL, PLY, OBJ, OFF, GLB, point clouds)")
-    parser.add_argument("-o", "--out", required=True, help="output directory (created); the cache goes in OUT/cache")
-    parser.add_argument("--backend", default="auto", help="numpy, warp-cpu, warp-cuda[:N], opencl[:PLATFORM] or auto")
-    parser.add_argument("--engine", default="local", choices=["local", "ray"], help="where pairs are matched")
-    parser.add_argument("--address", default=None, help="Ray cluster to join (e.g. ray://head:10001 or auto)")
-    parser.add_argument("--workers", type=int, default=None, help="parallel workers (threads or local Ray CPUs)")
-    parser.add_argument("--gpus-per-task", type=float, default=None,
-                        help="GPUs per Ray task where there are GPUs (default 1; e.g. 0.125 lets 8 tasks share one)")
-    parser.add_argument("--cache-dir", default=None, help="cache directory (default OUT/cache)")
-    parser.add_argument("--top-k", type=int, default=None,
-                        help=f"partners per fragment matched in full (default: every pair in heaps of at most "
-                             f"{ALL_PAIRS_UP_TO} fragments, else {TOP_K})")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar or summary on stderr")
-    parser.add_argument("--group", action="store_true",
-                        help="sort the heap into objects first (relicgpu.grouping) and assemble each on its own")
-    parser.add_argument("--classifier", default=None, metavar="WEIGHTS",
-                        help="with --group: classify with weights from `relicgpu train-classifier`")
-
-
-def cli_main(args) -> int:
-    from .backends import BackendError
-    from .cli import CliError
-
-    if args.workers is not None and args.workers < 1:
-        raise CliError(f"--workers must be at least 1, got {args.workers}")
-    if args.top_k is not None and args.top_k < 1:
-        raise CliError(f"--top-k must be at least 1, got {args.top_k}")
-    if args.address and args.engine != "ray":
-        raise CliError("--address needs --engine ray")
-    log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
-    src = Path(args.directory)
-    if not src.is_dir():
-        raise CliError(f"{src}: not a directory")
-    if Path(args.out).resolve() == src.resolve():
-        raise CliError(f"{args.out}: the output directory must not be the input directory")
-    batch = read_batch(src, progress=not args.quiet)
-    for line in batch.messages():  # every file or crumb left out, even with --quiet
-        print(line, file=sys.stderr)
-    batch.require(2)
-    if args.group:
-        from .grouping import assemble_grouped
-
-        grouping, _ = assemble_grouped(batch, args.out, classifier=args.classifier, backend=args.backend,
-                                       engine=args.engine, workers=args.workers, cache_dir=args.cache_dir,
-                                       progress=not args.quiet, address=args.address, top_k=args.top_k,
-                                       gpus_per_task=args.gpus_per_task)
-        log(f"{len(grouping.groups)} object(s) of sizes {[len(g) for g in grouping.groups]}; "
-            f"wrote {Path(args.out) / 'assembly.json'}, groups.json, object_<k>/")
-        return 0
-    try:
-        result = assemble(batch, backend=args.backend, engine=args.engine, workers=args.workers,
-                          cache_dir=args.cache_dir, progress=not args.quiet, out_dir=args.out,
-                          address=args.address, top_k=args.top_k, gpus_per_task=args.gpus_per_task)
-    except BackendError as exc:
-        raise CliError(str(exc)) from None
-    except (RuntimeError, ValueError) as exc:
-        if "ray" in str(exc).lower() or "gpus_per_task" in str(exc):
-            raise CliError(str(exc)) from None
-        raise
-    s = result.stats
-    log(f"{s['fragments']} fragments, {s['contours']} contours; backend {result.backend}, engine {result.engine}")
-    log(f"screened {s['pairs']} pairs, matched {s['candidates']} ({s['pairs_from_cache']} from cache), "
-        f"{s['accepted']} verified, {s['used']} used")
-    sizes = sorted((len(m) for m in result.group_members().values() if len(m) > 1), reverse=True)
-    log(f"{s['placed']} fragments placed in {len(sizes)} group(s) of sizes {sizes}; "
-        f"{s['fragments'] - s['placed']} unplaced")
-    for e in s["errors"]:
-        log(f"warning: pair failed: {e}")
-    for line in grouped_lines("note", s.get("merge_notes", [])):
-        log(line)
-    log("  " + "  ".join(f"{k} {v:.2f} s" for k, v in result.timings.items()))
-    merged = not any("no merged.stl written" in n for n in s.get("merge_notes", []))
-    log(f"wrote {Path(args.out) / 'assembly.json'}, assembly.glb" + (", merged.stl" if merged else ""))
-    return 0

@@ -1,49 +1,55 @@
 """The `relicgpu` command line.
 
 Each subcommand lives in the module of its stage, which exposes
-`cli_add_arguments(parser)` and `cli_main(args) -> int`; this file only
-routes, so modules are imported lazily (a `relicgpu synth` never loads Flask).
+`cli_add_arguments(parser)` and `cli_main(args) -> int`; this file only routes. It
+sits at the top of the import graph: it imports the stages, no stage imports it.
+The viewer's commands (`view`, `demo`) need Flask, an extra: without it they say so.
 """
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 
-# subcommand -> (module, one-line help)
+from . import fusion_train, grouping, heaprun, match, mosaic, synth
+from .backends import cli as backends_cli
+from .cloud import triangulate
+from .errors import CliError
+from .io.fragment import FragmentError
+
+try:
+    from .viewer import app as viewer_app
+    from . import demo
+except ImportError as exc:  # the viewer extra (Flask) is not installed
+    viewer_app = demo = exc
+
+__all__ = ["COMMANDS", "CliError", "main"]
+
+# subcommand -> (module, one-line help); a module that could not be imported is its ImportError
 COMMANDS = {
-    "demo": ("relicgpu.demo", "make a synthetic broken object, assemble it and open the viewer"),
-    "synth": ("relicgpu.synth", "break a solid into fragments with known poses"),
-    "match": ("relicgpu.match", "match two fragments (writes match.json and match.glb)"),
-    "assemble": ("relicgpu.assembly", "match and assemble a directory of fragments"),
-    "view": ("relicgpu.viewer.app", "serve the browser viewer of a workspace"),
-    "train-fusion": ("relicgpu.fusion_train", "train the feature-fusion MLP with torch"),
-    "group": ("relicgpu.grouping", "sort a heap of fragments into groups by object"),
-    "train-classifier": ("relicgpu.grouping", "train the supervised fragment classifier"),
-    "mosaic": ("relicgpu.mosaic", "stitch overlapping photographs of a relic"),
-    "mesh": ("relicgpu.pointcloud", "triangulate a point-cloud scan into a closed mesh"),
-    "backends": ("relicgpu.backends.cli", "list the compute backends available here"),
+    "demo": (demo, "make a synthetic broken object, assemble it and open the viewer"),
+    "synth": (synth, "break a solid into fragments with known poses"),
+    "match": (match, "match two fragments (writes match.json and match.glb)"),
+    "assemble": (heaprun, "match and assemble a directory of fragments"),
+    "view": (viewer_app, "serve the browser viewer of a workspace"),
+    "train-fusion": (fusion_train, "train the feature-fusion MLP with torch"),
+    "group": (grouping, "sort a heap of fragments into groups by object"),
+    "train-classifier": (grouping, "train the supervised fragment classifier"),
+    "mosaic": (mosaic, "stitch overlapping photographs of a relic"),
+    "mesh": (triangulate, "triangulate a point-cloud scan into a closed mesh"),
+    "backends": (backends_cli, "list the compute backends available here"),
 }
 
 
-class CliError(Exception):
-    """A user-facing failure: printed as one line, exit code 2."""
-
-
 def main(argv: list[str] | None = None) -> int:
-    # Build only the parser of the subcommand asked for: importing every stage is slow.
     argv = sys.argv[1:] if argv is None else list(argv)
-    from .io import FragmentError
-
     command = next((a for a in argv if not a.startswith("-")), None)
     parser = _parser_for(command)
     args = parser.parse_args(argv)
     if getattr(args, "_missing", False):
-        print(f"relicgpu {args._command}: module {args._module} is not available; install the matching extra", file=sys.stderr)
+        print(f"relicgpu {args._command}: this command is not available; install the matching extra", file=sys.stderr)
         return 2
-    mod = importlib.import_module(args._module)
     try:
-        handler = getattr(mod, "cli_main")
+        handler = getattr(args._module, "cli_main")
         result = handler(args) if handler.__code__.co_argcount == 1 else handler(args, args._command)
         return int(result or 0)
     except (FragmentError, CliError) as exc:
@@ -62,14 +68,12 @@ def _parser_for(command: str | None) -> argparse.ArgumentParser:
     module, help_text = COMMANDS[command]
     p = sub.add_parser(command, help=help_text, description=help_text)
     p.set_defaults(_module=module, _command=command)
-    try:
-        mod = importlib.import_module(module)
-    except ImportError as exc:
+    if isinstance(module, ImportError):
         p.set_defaults(_missing=True)
         p.add_argument("rest", nargs=argparse.REMAINDER)
-        print(f"note: {exc}", file=sys.stderr)
+        print(f"note: {module}", file=sys.stderr)
         return parser
-    add = getattr(mod, "cli_add_arguments")
+    add = getattr(module, "cli_add_arguments")
     add(p) if add.__code__.co_argcount == 1 else add(p, command)
     return parser
 

@@ -54,7 +54,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Batch, Fragment, FragmentError, atomic_write_bytes, atomic_write_json, read_batch
+from .backends import resolve
+from .errors import CliError
+from .io.files import atomic_write_bytes, atomic_write_json
+from .io.fragment import Fragment, FragmentError
+from .io.load import Batch, load_fragment, read_batch
+from .params import Params
+from .segment import segment
+from .verify import vertex_normals
 
 DESCRIPTOR_NAMES = (
     "kmax_q25", "kmax_q50", "kmax_q75", "kmin_q25", "kmin_q50", "kmin_q75",
@@ -248,17 +255,11 @@ def _grouping_params(params) -> "Params":
     """The segmentation the grouping descriptors and the pair model were fitted on:
     Otsu's roughness split, whatever `Params.segmentation` the matcher is given ("union"
     and "regions" add region cues; the pair model has not been refitted on those labels)."""
-    from .params import Params
     return dataclasses.replace(params or Params(), segmentation="roughness")
 
 
 def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None) -> Descriptor:
     """The breakage-surviving descriptors of one fragment."""
-    from .backends import resolve
-    from .params import Params
-    from .segment import segment
-    from .verify import vertex_normals
-
     v = np.asarray(fragment.vertices, np.float64)
     f = np.asarray(fragment.faces, np.int64)
     if len(f) < 4:
@@ -733,10 +734,6 @@ def point_features(fragment: Fragment, ref_length: float, n_points: int = CLASSI
                    rng: np.random.Generator | None = None, params=None, copies: int = 1) -> np.ndarray:
     """(copies, n_points, 7) area-weighted surface samples: position in the fragment's principal
     frame (over ref_length), face normal in that frame, fracture flag; independent samples."""
-    from .backends import resolve
-    from .params import Params
-    from .segment import segment
-
     rng = rng or np.random.default_rng(0)
     v, f = np.asarray(fragment.vertices, np.float64), np.asarray(fragment.faces, np.int64)
     seg = segment(v, f, _grouping_params(params), fragment.size, resolve("numpy"))
@@ -935,62 +932,6 @@ def read_labels_csv(path) -> tuple[list[Path], list[str]]:
     return files, labels
 
 
-# --- assemble each group on its own -------------------------------------------------
-
-def assemble_grouped(fragments_or_dir, out_dir=None, n_groups: int | None = None, classifier=None, **assemble_kw):
-    """Group the heap, then assemble each group on its own.
-
-    Returns (Grouping, [Assembly per group]). With out_dir, writes out_dir/groups.json and
-    out_dir/assembly.json in the assembly format, each fragment carrying "object" (its
-    classification group) and "group" (its assembled piece, numbered over all objects),
-    plus each object's own outputs under out_dir/object_<k>/.
-    """
-    from .assembly import assemble
-
-    batch = _load(fragments_or_dir)
-    fragments = batch.fragments
-    if classifier is not None:
-        names, _ = (classifier if isinstance(classifier, Classifier) else Classifier.load(classifier)).predict(fragments)
-        classes = sorted(set(names), key=lambda c: (-names.count(c), c))
-        grouping = Grouping([fr.name for fr in fragments], np.array([classes.index(c) for c in names]),
-                            float("nan"), method="classifier", files=[fr.file for fr in fragments])
-    else:
-        grouping = group_fragments(fragments, n_groups)
-    grouping = dataclasses.replace(grouping, skipped=list(batch.skipped), notes=list(batch.notes))
-    by_name = {fr.name: fr for fr in fragments}
-    results, doc_fragments, doc_matches, timings = [], [], [], {}
-    offset = 0
-    for k, names in enumerate(grouping.groups):
-        sub_out = None if out_dir is None else Path(out_dir) / f"object_{k}"
-        members = [by_name[n] for n in names]
-        if len(members) == 1:
-            results.append(None)
-            doc_fragments.append({"name": names[0], "file": members[0].file, "pose": np.eye(4).tolist(),
-                                  "group": offset, "object": k})
-            offset += 1
-            continue
-        res = assemble(members, out_dir=sub_out, **assemble_kw)
-        results.append(res)
-        d = res.to_dict()
-        for e in d["fragments"]:
-            doc_fragments.append({**e, "group": e["group"] + offset, "object": k})
-        doc_matches.extend(d["matches"])
-        offset += res.n_groups
-        for key, val in res.timings.items():
-            timings[key] = timings.get(key, 0.0) + float(val)
-    if out_dir is not None:
-        out = Path(out_dir)
-        atomic_write_json(out / "groups.json", grouping.to_dict())
-        first = next((r for r in results if r is not None), None)
-        atomic_write_json(out / "assembly.json", {
-            "version": 1, "fragments": doc_fragments, "matches": doc_matches,
-            "backend": first.backend if first else None, "engine": first.engine if first else None,
-            "timings": {**{k: round(v, 4) for k, v in timings.items()},
-                        **{f"group_{k}": round(float(v), 4) for k, v in grouping.timings.items()}},
-            "objects": grouping.groups, "skipped": grouping.skipped, "notes": grouping.notes})
-    return grouping, results
-
-
 # --- CLI ------------------------------------------------------------------------------
 
 def cli_add_arguments(parser, name="group") -> None:
@@ -1014,13 +955,10 @@ def cli_add_arguments(parser, name="group") -> None:
 
 
 def cli_main(args, name="group") -> int:
-    from .cli import CliError
-
     log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     if name == "train-classifier":
         if args.epochs < 1:
             raise CliError(f"--epochs must be at least 1, got {args.epochs}")
-        from .io import load_fragment
         files, labels = read_labels_csv(args.labels)
         out = Path(args.out) if args.out else Path(args.labels).parent / "classifier.pt"
         if out.resolve() in {f.resolve() for f in files} or out.resolve() == Path(args.labels).resolve():

@@ -36,7 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Fragment, FragmentError, atomic_open, is_cloud, load_original, progress_bar, unique_rows, write_stl
+from .io.files import atomic_open, write_stl
+from .io.fragment import Fragment, FragmentError, is_cloud, unique_rows
+from .io.load import load_original
+from .progress import progress_bar
 
 
 def colour(i: int) -> tuple[int, int, int, int]:

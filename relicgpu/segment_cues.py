@@ -55,7 +55,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .params import Params
-from .segment import Topology, _components, _merge_small, ring_average, weighted_quantile
+from .topology import components, merge_small, ring_average, Topology, weighted_quantile
 
 # Where the break is rough, regions at least this much (log units) smoother than the area-weighted
 # median of the rough regions are skin too (`region_fracture_prob`): chosen on synth slabs and
@@ -170,8 +170,8 @@ def crease_regions(normals: np.ndarray, areas: np.ndarray, topo: Topology, edge_
         smooth = np.zeros_like(smooth)
         crease_deg = coarse_crease_deg
     keep = (edge_angle < crease_deg) & ((smooth < smooth_crease_deg) | (edge_angle < flat_deg))
-    region = _components(len(areas), topo.edge_faces[keep])
-    return _merge_small(region, topo.edge_faces, min_faces)
+    region = components(len(areas), topo.edge_faces[keep])
+    return merge_small(region, topo.edge_faces, min_faces)
 
 
 @dataclass(frozen=True)
@@ -238,7 +238,7 @@ def region_cues(vertices: np.ndarray, normals: np.ndarray, areas: np.ndarray, to
         np.log(1 - np.minimum(flatness, 1) + 1e-4),
         rim_sharp / np.maximum(rim_len, 1e-12), rim_angle / np.maximum(rim_len, 1e-12)], 1)
     # exact planar patches: faces joined across edges flatter than PLANE_EDGE_DEG inside the region
-    patch = _components(len(areas), topo.edge_faces[inside & (edge_angle < PLANE_EDGE_DEG)])
+    patch = components(len(areas), topo.edge_faces[inside & (edge_angle < PLANE_EDGE_DEG)])
     patch_area = np.bincount(patch, weights=areas)
     big = (patch_area[patch] >= PLANE_PATCH_SHARE * area[region]) & (np.bincount(patch)[patch] >= PLANE_PATCH_FACES)
     cover = np.bincount(region, weights=areas * big, minlength=n_reg) / np.maximum(area, 1e-300)
@@ -600,7 +600,7 @@ def end_lips(centers: np.ndarray, areas: np.ndarray, topo: Topology, end: np.nda
     planar = np.zeros(len(centers), bool)
     planar[idx] = np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, 0], 0)) < END_FLAT_WALLS * wall
     e0, e1 = topo.edge_faces[:, 0], topo.edge_faces[:, 1]
-    run = _components(len(centers), topo.edge_faces[planar[e0] & planar[e1]])
+    run = components(len(centers), topo.edge_faces[planar[e0] & planar[e1]])
     shape = band_shape(centers, areas, run) / max(wall, 1e-300)
     lip_run = ((shape[:, 0] > END_LIP_LENGTH_WALLS) & (shape[:, 1] > END_LIP_BEND_WALLS)
                & (shape[:, 2] < END_LIP_FLAT_WALLS))
@@ -653,7 +653,7 @@ def wall_end_labels(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     face_p = np.where(lip, 0.0, p_end)
     frac = face_p > 0.5
     same = (region[e0] == region[e1]) & (frac[e0] == frac[e1]) & (lip[e0] == lip[e1])
-    pieces = _components(len(centers), topo.edge_faces[same])
+    pieces = components(len(centers), topo.edge_faces[same])
     n = int(pieces.max()) + 1
     piece_p = np.bincount(pieces, weights=areas * face_p, minlength=n) / np.maximum(
         np.bincount(pieces, weights=areas, minlength=n), 1e-300)

@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from relicgpu import synth
-from relicgpu.assembly import ALL_PAIRS_UP_TO, TOP_K, assemble
+from relicgpu.assembly import ALL_PAIRS_UP_TO, assemble, TOP_K
 from relicgpu.evaluate import score_assembly
-from relicgpu.io import load_directory
-from relicgpu.params import SEGMENTATIONS, Params, with_segmentations
+from relicgpu.io.load import load_directory
+from relicgpu.params import Params, SEGMENTATIONS, with_segmentations
 
 SHAPES = ("vase", "torso", "slab")
 

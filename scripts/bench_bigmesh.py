@@ -101,7 +101,7 @@ def check_outputs(out: Path, counts: dict) -> dict:
     merged = out / "merged.stl"
     facets = closed = None
     if merged.exists():
-        from relicgpu.io import STL_FACET
+        from relicgpu.io.files import STL_FACET
         from relicgpu.outputs import is_closed
 
         corners = np.fromfile(merged, STL_FACET, offset=84)["corners"].reshape(-1, 3)

@@ -39,7 +39,7 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
     import trimesh
 
     from relicgpu import corpus, synth
-    from relicgpu.pointcloud import cloud_fragment
+    from relicgpu.cloud.points import cloud_fragment
 
     if source == "corpus":
         r = corpus.generate(CORPUS[k % 4], pieces=2, seed=k // 4, faces=4000)
@@ -60,7 +60,7 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
 
 def _cut_holes(fragment, fracture: np.ndarray, rng, holes: int = 3, radius: float = 0.06):
     """The fragment with `holes` round holes (radius a share of its size) cut into its skin."""
-    from relicgpu.io import Fragment
+    from relicgpu.io.fragment import Fragment
 
     centres = fragment.vertices[fragment.faces].mean(1)
     keep = np.ones(len(centres), bool)
@@ -122,7 +122,7 @@ def main(argv=None) -> int:
     for mode, s in summary.items():
         print(f"  {mode:8s} {s['right']}/{s['pairs']} right, {s['wrong_accepted']} accepted at a wrong pose")
     if args.json:
-        from relicgpu.io import atomic_write_json
+        from relicgpu.io.files import atomic_write_json
         atomic_write_json(args.json, {"summary": summary, "rows": rows})
     return 0
 

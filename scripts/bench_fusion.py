@@ -43,7 +43,7 @@ from tqdm import tqdm  # noqa: E402
 
 from relicgpu import fusion as fusion_mod  # noqa: E402
 from relicgpu import fusion_train as ft  # noqa: E402
-from relicgpu.io import atomic_write_json  # noqa: E402
+from relicgpu.io.files import atomic_write_json  # noqa: E402
 from relicgpu.params import Params  # noqa: E402
 from relicgpu.pipeline import prepare  # noqa: E402
 

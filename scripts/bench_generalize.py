@@ -33,7 +33,7 @@ import numpy as np
 from relicgpu import corpus
 from relicgpu.evaluate import relative_pose_error, score
 from relicgpu.icp import invert
-from relicgpu.params import SEGMENTATIONS, Params, with_segmentations
+from relicgpu.params import Params, SEGMENTATIONS, with_segmentations
 
 QUICK = {"seeds": "0", "faces": 3000, "multi_faces": 1500, "pieces": "5", "realdata_assemble": False}
 FULL = {"seeds": "0,1,2", "faces": 6000, "multi_faces": 3000, "pieces": "5,8", "realdata_assemble": True}
@@ -85,7 +85,7 @@ def pair_case(result, params: Params, backend) -> dict:
 
 def cloud_pair_case(name: str, params: Params, backend) -> dict:
     """The Breaking Bad bottle (two point clouds): the inverse of solution.json's T carries obj2 onto obj1."""
-    from relicgpu.io import load_fragment
+    from relicgpu.io.load import load_fragment
     from relicgpu.pipeline import match_pair
 
     folder = corpus.REALDATA / name

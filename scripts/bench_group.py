@@ -41,7 +41,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from relicgpu import grouping as G  # noqa: E402
 from relicgpu import synth  # noqa: E402
-from relicgpu.io import Fragment  # noqa: E402
+from relicgpu.heaprun import assemble_grouped  # noqa: E402
+from relicgpu.io.fragment import Fragment  # noqa: E402
 
 SHAPES = ("vase", "torso", "slab", "tube", "ring", "brick", "capsule", "bowl")
 N_OBJECTS = (3, 5, 8, 4, 6, 7, 3, 8)  # per mixture seed, cycled
@@ -200,7 +201,7 @@ def bench_assembly(faces: int, pieces: int = 5) -> None:
     rows.append(("each object alone (truth)", time.perf_counter() - t0, _score(alone, fragments, objects, true_poses,
                                                                              touching)))
     t0 = time.perf_counter()
-    grouping, results = G.assemble_grouped(fragments, progress=False)
+    grouping, results = assemble_grouped(fragments, progress=False)
     t_grouped = time.perf_counter() - t0
     rows.append((f"assemble_grouped ({len(grouping.groups)} groups)", t_grouped,
                  _score([r for r in results if r is not None], fragments, objects, true_poses, touching)))

@@ -107,9 +107,9 @@ def remeshed_pair(shape: str, seed: int, n_points: int = 40000, noise: float = 0
     by the project's own mesher (returns the SynthResult and the two remeshed Fragments)."""
     import trimesh
 
-    from relicgpu import pointcloud as pc
+    from relicgpu.cloud import triangulate as pc
     from relicgpu import synth
-    from relicgpu.io import Fragment
+    from relicgpu.io.fragment import Fragment
 
     result = synth.generate(shape, pieces=2, seed=seed, progress=False)
     out = []
@@ -268,7 +268,7 @@ def report(args) -> int:
 def truth_samples(result, n_points: int = 1500) -> list:
     """Surface samples from the generator's fracture labels (the forest apart from segmentation)."""
     from relicgpu.backends import numpy as ref
-    from relicgpu.pointcloud import even_subsample
+    from relicgpu.cloud.points import even_subsample
     from relicgpu.verify import SurfaceSample, vertex_normals
 
     out = []

@@ -20,7 +20,7 @@ from relicgpu.assembly import (CLASH_THICKNESS, Edge, _finish_groups, _inv, asse
                                select_candidates)
 from relicgpu.backends import numpy as ref
 from relicgpu.evaluate import score, score_assembly
-from relicgpu.io import load_directory
+from relicgpu.io.load import load_directory
 from relicgpu.params import Params
 from relicgpu.verify import SurfaceSample, vertex_normals
 

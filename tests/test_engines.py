@@ -12,7 +12,7 @@ import pytest
 from relicgpu import synth
 from relicgpu.assembly import assemble
 from relicgpu.engines import Job, LocalEngine, make_engine
-from relicgpu.io import load_directory
+from relicgpu.io.load import load_directory
 
 
 def _square(payload, *shared):

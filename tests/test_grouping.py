@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from relicgpu import grouping as G
-from relicgpu import synth
-from relicgpu.io import Fragment, FragmentError
+from relicgpu import grouping as G, synth
+from relicgpu.heaprun import assemble_grouped
+from relicgpu.io.fragment import Fragment, FragmentError
 
 
 def _scaled(frags, s, prefix):
@@ -232,7 +232,7 @@ def test_group_one_object_stays_one_group():
 
 def test_group_cli(tmp_path, mixture):
     from relicgpu.cli import main
-    from relicgpu.io import write_mesh
+    from relicgpu.io.files import write_mesh
 
     frags, labels = mixture
     src = tmp_path / "heap"
@@ -267,7 +267,7 @@ def test_labels_csv_faults(tmp_path):
 def test_train_classifier_cli(tmp_path, mixture):
     pytest.importorskip("torch")
     from relicgpu.cli import main
-    from relicgpu.io import write_mesh
+    from relicgpu.io.files import write_mesh
 
     frags, labels = mixture
     rows = ["file,label"]
@@ -297,7 +297,7 @@ def test_assemble_grouped_writes_objects(tmp_path):
         for f in _scaled(r.fragments, scale, f"o{k}_"):
             frags.append(f)
             obj[f.name] = k
-    grouping, results = G.assemble_grouped(frags, tmp_path / "out", progress=False)
+    grouping, results = assemble_grouped(frags, tmp_path / "out", progress=False)
     assert len(results) == 2
     doc = json.loads((tmp_path / "out" / "assembly.json").read_text())
     got = {e["name"]: e["object"] for e in doc["fragments"]}

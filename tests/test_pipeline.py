@@ -103,7 +103,7 @@ def test_fracture_sample_is_weighted_by_the_fracture_likelihood():
 def test_a_fragment_without_fracture_is_sampled_whole_with_uniform_weights():
     """Segmentation finds no fracture on a smooth sphere: the fracture sample is the whole surface."""
     import trimesh
-    from relicgpu.io import Fragment
+    from relicgpu.io.fragment import Fragment
     from relicgpu.pipeline import prepare
     sphere = trimesh.creation.icosphere(subdivisions=4)
     frag = Fragment("sphere", np.asarray(sphere.vertices, np.float64), np.asarray(sphere.faces, np.int64))

@@ -26,7 +26,7 @@ import pytest
 pytest.importorskip("flask")
 import trimesh  # noqa: E402
 
-from relicgpu.io import load_fragment  # noqa: E402
+from relicgpu.io.load import load_fragment  # noqa: E402
 from relicgpu.viewer.app import create_app, make_server, serve_in_thread  # noqa: E402
 from relicgpu.viewer.workspace import Workspace  # noqa: E402
 

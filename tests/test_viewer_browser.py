@@ -70,7 +70,7 @@ def served(tmp_path_factory):
                             "transform": (np.linalg.inv(other["poses"][names[0]]) @ other["poses"][names[1]]).tolist(),
                             "score": 0.8, "rmse": 0.001, "overlap": 0.7, "used": True}],
                "backend": "numpy", "engine": "local", "timings": {}}
-        from relicgpu.io import atomic_write_json
+        from relicgpu.io.files import atomic_write_json
         atomic_write_json(out_dir / "assembly.json", doc)
         return {"fragments": 3, "placed": 3, "groups": 1}
 

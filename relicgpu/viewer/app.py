@@ -35,9 +35,10 @@ import threading
 import traceback
 from pathlib import Path
 
-from flask import Flask, Response, jsonify, request
+from flask import Flask, jsonify, request, Response
 from werkzeug.exceptions import HTTPException
 
+from ..errors import CliError
 from .hooks import default_match_pair, default_prepare, pipeline_available, run_assembly
 from .routes import bp
 from .state import ApiError, ViewerState
@@ -223,7 +224,6 @@ def server_url(server, host: str) -> str:
 
 def bind(app: Flask, host: str, port: int):
     """make_server, with a port that cannot be bound raised as a one-line CliError."""
-    from ..cli import CliError
     try:
         return make_server(app, host, port)
     except OSError as exc:
@@ -241,7 +241,6 @@ def cli_add_arguments(parser) -> None:
 
 def cli_main(args) -> int:
     """`relicgpu view`: serve a workspace until Ctrl+C; returns the exit status."""
-    from ..cli import CliError
     try:
         ws = Workspace(args.workspace)
     except WorkspaceError as exc:
