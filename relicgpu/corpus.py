@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Fragment
+from .io.fragment import Fragment
 from .synth import SynthResult, _invert_rigid, _point_triangle_distance, _random_placement, _touching_pairs
 
 FRACTURES = ("rough", "smooth", "voronoi", "vessel")

@@ -518,7 +518,7 @@ def cli_add_arguments(parser) -> None:
 
 
 def cli_main(args) -> int:
-    from .cli import CliError
+    from .errors import CliError
 
     out = Path(args.out)
     if out.suffix != ".npz":

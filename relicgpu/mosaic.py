@@ -126,7 +126,7 @@ from scipy import ndimage
 
 from .backends import BackendError, resolve
 from .backends import numpy as reference
-from .io import FragmentError
+from .io.fragment import FragmentError
 
 
 class MosaicError(FragmentError):
@@ -1113,7 +1113,7 @@ def save_image(path, image: np.ndarray) -> None:
     """Write an image atomically; the format comes from the suffix."""
     import io as _io
     from PIL import Image
-    from .io import atomic_write_bytes
+    from .io.files import atomic_write_bytes
     path = Path(path)
     fmt = _FORMATS.get(path.suffix.lower())
     if fmt is None:
@@ -1137,8 +1137,8 @@ def cli_add_arguments(parser) -> None:
 
 
 def cli_main(args) -> int:
-    from .cli import CliError
-    from .io import ensure_not_input
+    from .errors import CliError
+    from .io.files import ensure_not_input
     if len(args.images) < 2:
         raise CliError("give at least two images (LEFT RIGHT [MORE ...])")
     if not 0.05 <= args.min_overlap <= 0.95:

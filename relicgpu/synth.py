@@ -43,7 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Fragment, FragmentError, atomic_write_bytes, atomic_write_json, write_mesh
+from .io.files import atomic_write_bytes, atomic_write_json, write_mesh
+from .io.fragment import Fragment, FragmentError
 
 SHAPES = ("vase", "torso", "slab")
 TRUTH_VERSION = 1
@@ -468,7 +469,8 @@ def _slab(rng, edge):
 
 def _solid_from_file(path) -> "object":
     import manifold3d as mf
-    from .io import is_watertight, load_fragment
+    from .io.fragment import is_watertight
+    from .io.load import load_fragment
 
     p = Path(path)
     if not p.exists():
@@ -1159,7 +1161,7 @@ def cli_add_arguments(parser) -> None:
 
 
 def cli_main(args) -> int:
-    from .cli import CliError
+    from .errors import CliError
 
     if args.objects < 1:
         raise CliError(f"--objects must be at least 1, got {args.objects}")
