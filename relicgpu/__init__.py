@@ -15,15 +15,15 @@ def __getattr__(name):
         from .params import Params
         return Params
     if name == "prepare":
-        from .pipeline import prepare
+        from .pair.pipeline import prepare
         return prepare
     if name == "match_pair":
-        from .pipeline import match_pair
+        from .pair.pipeline import match_pair
         return match_pair
     if name == "assemble":
-        from .assembly import assemble
+        from .heap.assembly import assemble
         return assemble
     if name == "group":
-        from .grouping import group
+        from .heap.grouping import group
         return group
     raise AttributeError(f"module 'relicgpu' has no attribute {name!r}")

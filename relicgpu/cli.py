@@ -10,7 +10,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import fusion_train, grouping, heaprun, match, mosaic, synth
+from . import fusion_train, mosaic, synth
+from .heap import grouping, run as heaprun
+from .pair import match
 from .backends import cli as backends_cli
 from .cloud import triangulate
 from .errors import CliError

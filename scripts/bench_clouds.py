@@ -76,7 +76,7 @@ def _cut_holes(fragment, fracture: np.ndarray, rng, holes: int = 3, radius: floa
 
 def score(a, b, truth, transform) -> tuple[float, float]:
     """Rotation error (degrees) and RMS of b's points relative to the object's size."""
-    from relicgpu.icp import rotation_angle_deg
+    from relicgpu.pair.icp import rotation_angle_deg
 
     rot = rotation_angle_deg(transform[:3, :3] @ truth[:3, :3].T)
     placed = b.vertices @ transform[:3, :3].T + transform[:3, 3]

@@ -39,9 +39,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from relicgpu import grouping as G  # noqa: E402
+from relicgpu.heap import grouping as G  # noqa: E402
 from relicgpu import synth  # noqa: E402
-from relicgpu.heaprun import assemble_grouped  # noqa: E402
+from relicgpu.heap.run import assemble_grouped  # noqa: E402
 from relicgpu.io.fragment import Fragment  # noqa: E402
 
 SHAPES = ("vase", "torso", "slab", "tube", "ring", "brick", "capsule", "bowl")
@@ -151,10 +151,10 @@ def mixture(seed, edge, cache):
 
 def object_edges(frags, labels):
     """Per object of a heap: (median edge length on fracture faces, on the other faces), the
-    faces told apart by relicgpu.segment as the grouping sees them."""
+    faces told apart by relicgpu.pair.segment as the grouping sees them."""
     from relicgpu.backends import resolve
     from relicgpu.params import Params
-    from relicgpu.segment import segment
+    from relicgpu.pair.segment import segment
 
     per = {}
     for fr, lab in zip(frags, labels):
@@ -168,8 +168,8 @@ def object_edges(frags, labels):
 
 
 def _score(assemblies, fragments, objects, true_poses, touching):
-    """Part accuracy (relicgpu.evaluate) of one or several Assemblies over the whole mixture."""
-    from relicgpu.evaluate import score
+    """Part accuracy (relicgpu.heap.evaluate) of one or several Assemblies over the whole mixture."""
+    from relicgpu.heap.evaluate import score
 
     index = {f.name: i for i, f in enumerate(fragments)}
     poses, groups, used = [None] * len(fragments), [0] * len(fragments), []
@@ -185,7 +185,7 @@ def _score(assemblies, fragments, objects, true_poses, touching):
 def bench_assembly(faces: int, pieces: int = 5) -> None:
     """assemble_grouped (what `relicgpu assemble --group` runs) vs assembling the heap at once vs
     each object alone (known answer), on one heap of a vase, a torso and a slab."""
-    from relicgpu.assembly import assemble
+    from relicgpu.heap.assembly import assemble
 
     fragments, objects, true_poses, touching = [], [], [], []
     for k, (shape, seed) in enumerate([("vase", 501), ("torso", 502), ("slab", 503)]):
@@ -295,7 +295,7 @@ def main(argv=None) -> int:
               f"ARI {ari:.3f} ({t2 - t1:.1f} s)", file=sys.stderr)
 
     print(f"\nScan resolution: median edge length per object / --edge, on its fracture and original faces "
-          f"(relicgpu.segment), over the objects of all mixtures")
+          f"(relicgpu.pair.segment), over the objects of all mixtures")
     print(f"{'surface':>8} {'min':>6} {'q25':>6} {'median':>6} {'q75':>6} {'max':>6}")
     for name, col in (("fracture", 0), ("original", 1)):
         x = np.array([e[col] for e in edges]) / args.edge

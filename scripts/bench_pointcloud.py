@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark: read and mesh a large point cloud (relicgpu.pointcloud).
+"""Benchmark: read and mesh a large point cloud (relicgpu.cloud).
 
 Samples N points (default 1 million) uniformly on the surface of a fragment,
 moves each by up to NOISE (a fraction of the fragment size) in a random

@@ -126,10 +126,10 @@ def remeshed_pair(shape: str, seed: int, n_points: int = 40000, noise: float = 0
 
 
 def collect(args) -> int:
-    import relicgpu.pipeline as pl
+    import relicgpu.pair.pipeline as pl
     from relicgpu.backends import resolve
-    from relicgpu.evaluate import relative_pose_error
-    from relicgpu.icp import rotation_angle_deg
+    from relicgpu.heap.evaluate import relative_pose_error
+    from relicgpu.pair.icp import rotation_angle_deg
     from relicgpu.params import Params, with_segmentations
 
     # one reading's fits: the spy refuses every fit, so a second reading would run on every pair
@@ -176,7 +176,7 @@ def collect(args) -> int:
 
 def fit_table(records: list, backend) -> list[dict]:
     """One row per recorded fit: its case, label, today's verdict and `verify.fit_cues`."""
-    from relicgpu.verify import fit_cues
+    from relicgpu.pair.verify import fit_cues
 
     rows = []
     for pair, rec in enumerate(records):
@@ -269,7 +269,7 @@ def truth_samples(result, n_points: int = 1500) -> list:
     """Surface samples from the generator's fracture labels (the forest apart from segmentation)."""
     from relicgpu.backends import numpy as ref
     from relicgpu.cloud.points import even_subsample
-    from relicgpu.verify import SurfaceSample, vertex_normals
+    from relicgpu.pair.verify import SurfaceSample, vertex_normals
 
     out = []
     for frag, frac in zip(result.fragments, result.fracture_faces):
@@ -284,11 +284,12 @@ def truth_samples(result, n_points: int = 1500) -> list:
 
 def forest(args) -> int:
     """Assembly with one wrong match among the right ones: part accuracy without and with recovery."""
-    from relicgpu import assembly, corpus, synth
-    from relicgpu.assembly import Edge, _finish_groups, closed_solid, grow_forest
+    from relicgpu import corpus, synth
+    from relicgpu.heap import assembly
+    from relicgpu.heap.assembly import Edge, _finish_groups, closed_solid, grow_forest
     from relicgpu.backends import numpy as ref
-    from relicgpu.evaluate import score
-    from relicgpu.icp import invert
+    from relicgpu.heap.evaluate import score
+    from relicgpu.pair.icp import invert
     from relicgpu.params import Params
 
     rounds = assembly.RECOVERY_ROUNDS

@@ -149,7 +149,7 @@ def test_duplicate_stems_get_distinct_names(tmp_path):
 
 
 def test_assemble_writes_skipped_and_notes(pair_dir, tmp_path):
-    from relicgpu.assembly import assemble
+    from relicgpu.heap.assembly import assemble
 
     out = tmp_path / "out"
     files = sorted(pair_dir.iterdir())
@@ -253,7 +253,7 @@ def test_cli_assemble_and_match_run_on_faceless_clouds(faceless, tmp_path, capsy
 
 
 def test_merged_stl_caps_holes_and_says_what_it_could_not_close():
-    from relicgpu.outputs import cap_holes, merged_solid
+    from relicgpu.heap.outputs import cap_holes, merged_solid
     from relicgpu.cloud.points import cloud_fragment
 
     sphere = trimesh.creation.icosphere(subdivisions=3)
@@ -296,8 +296,8 @@ def fragment_from_arrays_quiet(name, v, f):
 
 
 def test_big_meshes_are_thinned_at_load_and_written_in_full(tmp_path, capsys):
-    from relicgpu.assembly import Assembly
-    from relicgpu.outputs import write_outputs
+    from relicgpu.heap.assembly import Assembly
+    from relicgpu.heap.outputs import write_outputs
 
     sphere = trimesh.creation.icosphere(subdivisions=7)  # 327,680 faces
     sphere.vertices *= 1 + 0.002 * np.random.default_rng(0).normal(size=(len(sphere.vertices), 1))
@@ -417,7 +417,7 @@ def test_a_corrupt_las_is_one_line_naming_it_and_a_batch_skips_it(tmp_path):
 
 
 def test_a_union_too_big_for_memory_is_written_as_separate_shells_and_says_so(monkeypatch):
-    from relicgpu import outputs
+    from relicgpu.heap import outputs
 
     box = fragment_from_arrays_quiet("box", _box().vertices, _box().faces)
     near = np.eye(4)
@@ -434,7 +434,7 @@ def test_a_union_too_big_for_memory_is_written_as_separate_shells_and_says_so(mo
 
 
 def test_a_union_that_does_not_close_as_written_says_so():
-    from relicgpu.outputs import merged_solid
+    from relicgpu.heap.outputs import merged_solid
 
     box = fragment_from_arrays_quiet("box", _box().vertices, _box().faces)
     corner = np.eye(4)

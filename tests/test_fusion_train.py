@@ -9,7 +9,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from relicgpu import fusion as fusion_mod  # noqa: E402
+from relicgpu.pair import fusion as fusion_mod  # noqa: E402
 from relicgpu import fusion_train as ft  # noqa: E402
 from relicgpu.params import Params  # noqa: E402
 

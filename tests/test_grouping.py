@@ -6,8 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from relicgpu import grouping as G, synth
-from relicgpu.heaprun import assemble_grouped
+from relicgpu import synth
+from relicgpu.heap import grouping as G
+from relicgpu.heap.run import assemble_grouped
 from relicgpu.io.fragment import Fragment, FragmentError
 
 

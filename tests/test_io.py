@@ -124,7 +124,7 @@ def test_unique_rows_on_spans_that_overflow_int64():
     # rows spanning more than 2**63 (the bit patterns of floats, as is_closed welds positions) must
     # not overflow into the one-key path: a box's 8 distinct corners were taken for 2
     from relicgpu.io.fragment import unique_rows
-    from relicgpu.outputs import is_closed
+    from relicgpu.heap.outputs import is_closed
 
     box = trimesh.creation.box()
     first, inverse, counts = unique_rows(np.ascontiguousarray(box.vertices).view(np.int64))

@@ -1,4 +1,4 @@
-"""relicgpu.pointcloud: point-cloud readers and triangulation into closed meshes."""
+"""relicgpu.cloud: point-cloud readers and triangulation into closed meshes."""
 from __future__ import annotations
 
 import importlib.util
@@ -380,8 +380,8 @@ def _have(module: str, attr: str | None = None) -> bool:
 
 
 needs_synth = pytest.mark.skipif(not _have("relicgpu.synth", "generate"), reason="relicgpu.synth is not installed yet")
-needs_pipeline = pytest.mark.skipif(not _have("relicgpu.pipeline", "match_pair"),
-                                    reason="relicgpu.pipeline.match_pair is not installed yet")
+needs_pipeline = pytest.mark.skipif(not _have("relicgpu.pair.pipeline", "match_pair"),
+                                    reason="relicgpu.pair.pipeline.match_pair is not installed yet")
 
 
 _remeshed: dict = {}
@@ -415,7 +415,7 @@ def _angle_deg(r):
 
 def _check_issue(shape, seed):
     """The issue's check: within 1% of size (Hausdorff) of the source, and matched at the true pose."""
-    from relicgpu.pipeline import match_pair
+    from relicgpu.pair.pipeline import match_pair
 
     result, (a, b) = _remeshed_pair(shape, seed)
     for frag, again in zip(result.fragments, (a, b)):

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from relicgpu import match_pair, synth
-from relicgpu.assembly import assemble
-from relicgpu.icp import rotation_angle_deg
+from relicgpu.heap.assembly import assemble
+from relicgpu.pair.icp import rotation_angle_deg
 from relicgpu.io.fragment import Fragment
 from relicgpu.cloud.points import even_subsample
 
@@ -170,8 +170,8 @@ def test_sparse_clouds_are_matched_on_their_points(shape, seed, with_normals):
 
 def test_cloud_interpenetration_counts_only_near_the_other_surface():
     from relicgpu.backends import resolve
-    from relicgpu.cloudmatch import MAX_PENETRATION, PENETRATION_REACH, cloud_penetration
-    from relicgpu.verify import SurfaceSample
+    from relicgpu.pair.cloudmatch import MAX_PENETRATION, PENETRATION_REACH, cloud_penetration
+    from relicgpu.pair.verify import SurfaceSample
 
     be = resolve("numpy")
     g = np.stack(np.meshgrid(np.linspace(0, 1, 21), np.linspace(0, 1, 21)), -1).reshape(-1, 2)
@@ -214,7 +214,7 @@ def test_a_cloud_that_does_not_close_loads_as_points(tmp_path):
 
 
 def test_crease_regions_split_a_cloud_at_its_creases_with_and_without_normals():
-    from relicgpu.cloudmatch import crease_regions
+    from relicgpu.pair.cloudmatch import crease_regions
     from relicgpu.cloud.points import estimate_normals
 
     # a box's six faces (sides 1, 0.8, 0.6): six smooth regions between its creases

@@ -630,8 +630,8 @@ def test_viewer_never_uses_the_flask_debugger(box):
 
 # --- against the real pipeline, once it is installed -------------------------------------------
 
-needs_pipeline = pytest.mark.skipif(importlib.util.find_spec("relicgpu.pipeline") is None,
-                                    reason="relicgpu.pipeline (prepare, match_pair) is not installed yet")
+needs_pipeline = pytest.mark.skipif(importlib.util.find_spec("relicgpu.pair.pipeline") is None,
+                                    reason="relicgpu.pair.pipeline (prepare, match_pair) is not installed yet")
 
 
 @needs_pipeline

@@ -274,8 +274,8 @@ def test_demo_case_end_to_end(browser, tmp_path, monkeypatch):
     """`relicgpu demo`'s case (relicgpu.synth + relicgpu.assemble, the real pipeline) in the browser."""
     import importlib.util
 
-    if importlib.util.find_spec("relicgpu.synth") is None or importlib.util.find_spec("relicgpu.assembly") is None:
-        pytest.skip("relicgpu.synth and relicgpu.assembly are not installed yet")
+    if importlib.util.find_spec("relicgpu.synth") is None or importlib.util.find_spec("relicgpu.heap.assembly") is None:
+        pytest.skip("relicgpu.synth and relicgpu.heap.assembly are not installed yet")
     from relicgpu.demo import make_case
     from relicgpu.viewer.app import create_app, serve_in_thread
 

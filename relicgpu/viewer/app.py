@@ -110,9 +110,9 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
         "assemble": assemble or run_assembly,
     }
     capabilities = {
-        "prepare": prepare is not None or pipeline_available("relicgpu.pipeline"),
-        "match": match_pair is not None or pipeline_available("relicgpu.pipeline"),
-        "assemble": assemble is not None or pipeline_available("relicgpu.assembly"),
+        "prepare": prepare is not None or pipeline_available("relicgpu.pair.pipeline"),
+        "match": match_pair is not None or pipeline_available("relicgpu.pair.pipeline"),
+        "assemble": assemble is not None or pipeline_available("relicgpu.heap.assembly"),
     }
     state = ViewerState(ws, viewer_dir(), hooks, capabilities)
     hosts = {"trusted": set(LOOPBACK_NAMES) if trusted_hosts is None else set(trusted_hosts)}

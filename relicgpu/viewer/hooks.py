@@ -76,7 +76,7 @@ def progress_callback(report):
 
 
 def pipeline_available(module: str) -> bool:
-    """Whether a module (e.g. "relicgpu.pipeline") can be imported, without importing it."""
+    """Whether a module (e.g. "relicgpu.pair.pipeline") can be imported, without importing it."""
     try:
         return importlib.util.find_spec(module) is not None
     except (ImportError, ValueError):

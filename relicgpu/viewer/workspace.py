@@ -91,7 +91,7 @@ class AssemblyView:
 
 @dataclass(frozen=True)
 class ObjectGroups:
-    """Which object group each fragment was sorted into (relicgpu.grouping), and from where."""
+    """Which object group each fragment was sorted into (relicgpu.heap.grouping), and from where."""
     groups: dict  # name -> int or None (not in the file)
     source: str  # the file, relative to the case
     method: str | None = None

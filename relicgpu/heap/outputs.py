@@ -36,10 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .io.files import atomic_open, write_stl
-from .io.fragment import Fragment, FragmentError, is_cloud, unique_rows
-from .io.load import load_original
-from .progress import progress_bar
+from ..io.files import atomic_open, write_stl
+from ..io.fragment import Fragment, FragmentError, is_cloud, unique_rows
+from ..io.load import load_original
+from ..progress import progress_bar
 
 
 def colour(i: int) -> tuple[int, int, int, int]:

@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .params import Params
+from ..params import Params
 from .topology import components, merge_small, ring_average, Topology, weighted_quantile
 
 # Where the break is rough, regions at least this much (log units) smoother than the area-weighted

@@ -15,9 +15,9 @@ from __future__ import annotations
 import numpy as np
 
 from .icp import apply
-from .io.fragment import is_cloud
-from .params import Params
-from .cloud.points import estimate_normals, even_subsample, fracture_likelihood, local_pca
+from ..io.fragment import is_cloud
+from ..params import Params
+from ..cloud.points import estimate_normals, even_subsample, fracture_likelihood, local_pca
 from .ppf import smoothed_normals
 from .verify import SurfaceSample, Verification, verify
 

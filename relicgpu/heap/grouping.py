@@ -54,14 +54,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .backends import resolve
-from .errors import CliError
-from .io.files import atomic_write_bytes, atomic_write_json
-from .io.fragment import Fragment, FragmentError
-from .io.load import Batch, load_fragment, read_batch
-from .params import Params
-from .segment import segment
-from .verify import vertex_normals
+from ..backends import resolve
+from ..errors import CliError
+from ..io.files import atomic_write_bytes, atomic_write_json
+from ..io.fragment import Fragment, FragmentError
+from ..io.load import Batch, load_fragment, read_batch
+from ..params import Params
+from ..pair.segment import segment
+from ..pair.verify import vertex_normals
 
 DESCRIPTOR_NAMES = (
     "kmax_q25", "kmax_q50", "kmax_q75", "kmin_q25", "kmin_q50", "kmin_q75",
@@ -119,7 +119,7 @@ PATCH_TOLERANCE = 0.3
 # intercept; class-balanced, L2 1.0, fitted by `scripts/bench_group.py --fit 10 ... 29 40 ... 59` on
 # heaps of synthetic mixture seeds 10-29 and 40-59, scanned at one resolution (the benchmark scores
 # seeds 0-4; seeds 30-39 served to diagnose failures, never to fit).
-# Depends on relicgpu.segment (which faces are fracture): refit when it changes. Two-fold (fitted on
+# Depends on relicgpu.pair.segment (which faces are fracture): refit when it changes. Two-fold (fitted on
 # seeds 10-29, scored on 40-59, and the other way): mean ARI 0.971, min 0.791.
 PAIR_WEIGHTS = (-0.338, 0.262, 0.195, 0.210, 0.200, 1.781, -0.099, -0.362, 0.101, 0.061, -0.261, 0.093, 0.128, 0.811,
                 -0.070, 0.853, -0.076, 0.319, 0.326, 0.509, 0.370, -0.199, 0.788, -2.419, -2.457, -0.942, -1.950,

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .io.files import atomic_write_bytes
-from .io.fragment import FragmentError
+from ..io.files import atomic_write_bytes
+from ..io.fragment import FragmentError
 
 FEATURE_NAMES = ("kappa", "tau", "chord_right", "chord_left")
 INPUT_NAMES = tuple(f"g_{n}" for n in FEATURE_NAMES) + FEATURE_NAMES

@@ -32,16 +32,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .backends import numpy as numpy_backend, resolve
+from ..backends import numpy as numpy_backend, resolve
 from .engines import Job, make_engine
-from .io.files import atomic_write_bytes, atomic_write_json
-from .io.fragment import Fragment, FragmentError
-from .io.load import Batch, read_batch
-from .icp import apply, invert, kabsch
+from ..io.files import atomic_write_bytes, atomic_write_json
+from ..io.fragment import Fragment, FragmentError
+from ..io.load import Batch, read_batch
+from ..pair.icp import apply, invert, kabsch
 from .outputs import assembly_glb, closed_solid, merged_solid, write_outputs  # noqa: F401 (re-exported)
-from .params import Params
-from .pipeline import match_pair, ppf_points, prepare, with_fragment
-from .ppf import pair_table, vote_poses
+from ..params import Params
+from ..pair.pipeline import match_pair, ppf_points, prepare, with_fragment
+from ..pair.ppf import pair_table, vote_poses
 
 CACHE_VERSION = 1
 # Screening: each fragment keeps its TOP_K best partners by screening score; a pair
@@ -91,7 +91,7 @@ class MatchRecord:
     penetration: float
     used: bool
     note: str  # why it is used or not: the forest's decision, or the verification's reason
-    accepted: bool = True  # passed verification (relicgpu.verify)
+    accepted: bool = True  # passed verification (relicgpu.pair.verify)
 
     def to_dict(self, names: list[str]) -> dict:
         """The assembly.json entry: ``accepted`` (verified), ``used``, and ``reason``."""
@@ -151,9 +151,10 @@ class Assembly:
 
 # --- hashing and the cache ---------------------------------------------------
 
-_STAGE_MODULES = ("pipeline", "segment", "contour", "features", "fusion", "lcs", "ppf", "icp", "verify", "params",
-                  "assembly", "backends/__init__", "backends/_prep", "backends/numpy", "backends/warp",
-                  "backends/opencl")
+# The sources a cached match depends on (globs under relicgpu/): the pair stages, the parameters,
+# this module and the backends.
+_STAGE_MODULES = ("pair/*", "params", "heap/assembly", "backends/__init__", "backends/_prep", "backends/numpy",
+                  "backends/warp", "backends/opencl")
 
 
 def fragment_hash(fragment: Fragment) -> str:
@@ -168,10 +169,13 @@ def code_fingerprint(params: Params) -> str:
     """Hash of the source of the pipeline stages and of the fusion weights: a cached result
     is reused only when the code that made it is the code that would make it again."""
     h = hashlib.sha256()
-    base = Path(__file__).parent
+    base = Path(__file__).parents[1]
     for mod in _STAGE_MODULES:
-        p = base / f"{mod}.py"
-        h.update(p.read_bytes() if p.exists() else b"-")
+        paths = sorted(base.glob(f"{mod}.py"))
+        for p in paths:
+            h.update(p.read_bytes())
+        if not paths:
+            h.update(b"-")
     weights = Path(params.fusion_weights) if params.fusion_weights else base / "data" / "fusion_default.npz"
     h.update(weights.read_bytes() if weights.exists() else b"hand-weighted")
     return h.hexdigest()[:16]
@@ -743,7 +747,7 @@ def overlap_volume(a, b, transform: np.ndarray) -> tuple[float, float]:
 def penetration(a, b, transform: np.ndarray, backend, depth: float) -> float:
     """Share of surface samples of either fragment (b moved by `transform`) that lie deeper
     than `depth` inside the other: the signed distance along the nearest sample's outward
-    normal, as in relicgpu.verify, but only for points within PENETRATION_BAND * depth of
+    normal, as in relicgpu.pair.verify, but only for points within PENETRATION_BAND * depth of
     the other surface. The sign of a far point is not to be trusted (its nearest sample
     may be a rim or the far side of a thin wall): without the band, correctly placed
     neighbours on synthetic vases, slabs and torsos score up to 0.26; with it at most 0.02.
@@ -840,7 +844,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     gpus_per_task: GPUs a Ray task takes where there are GPUs, default 1).
     top_k: partners per fragment matched in full (None: every pair in heaps of at most
     ALL_PAIRS_UP_TO fragments, else TOP_K).
-    objects: optional class per fragment (relicgpu.grouping's labels): only pairs within one
+    objects: optional class per fragment (relicgpu.heap.grouping's labels): only pairs within one
     class are matched, in one run over the whole heap (one engine, all pairs in parallel).
     """
     params = params or Params()

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backends import numpy as numpy_backend
+from ..backends import numpy as numpy_backend
 
 
 def kabsch(cs: np.ndarray, ct: np.ndarray, h: np.ndarray) -> np.ndarray:

@@ -11,15 +11,16 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import contour as contour_mod, features as features_mod, fusion as fusion_mod
-from .backends import resolve
+from . import contour as contour_mod
+from . import features as features_mod
+from . import fusion as fusion_mod
+from ..backends import resolve
 from .icp import batched_icp, facing_poses, ransac_poses, refine_point_to_plane, same_pose
-from .io.fragment import Fragment, is_cloud
+from ..io.fragment import Fragment, is_cloud
 from .lcs import circular_lcs
-from .params import Params
-from .cloudmatch import (AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS,
-                         STRICT_SPREADS, WIDE_SPREADS, cloud_params, cloud_sample, region_samples, verify_clouds)
-from .cloud.points import even_subsample
+from ..params import Params
+from .cloudmatch import AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS, STRICT_SPREADS, WIDE_SPREADS, cloud_params, cloud_sample, region_samples, verify_clouds
+from ..cloud.points import even_subsample
 from .ppf import pair_table, PairTable, smoothed_normals, vote_poses
 from .segment import segment
 from .verify import SurfaceSample, verify, vertex_normals

@@ -1,5 +1,5 @@
-"""Run a heap: `relicgpu assemble DIR -o OUT` (the command line of relicgpu.assembly) and
-`assemble_grouped`, which sorts the heap into objects (relicgpu.grouping) and assembles each."""
+"""Run a heap: `relicgpu assemble DIR -o OUT` (the command line of relicgpu.heap.assembly) and
+`assemble_grouped`, which sorts the heap into objects (relicgpu.heap.grouping) and assembles each."""
 from __future__ import annotations
 
 import dataclasses
@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from .assembly import ALL_PAIRS_UP_TO, assemble, TOP_K
-from .backends import BackendError
-from .errors import CliError
+from ..backends import BackendError
+from ..errors import CliError
 from .grouping import _load, Classifier, group_fragments, Grouping
-from .io.files import atomic_write_json, grouped_lines
-from .io.load import read_batch
+from ..io.files import atomic_write_json, grouped_lines
+from ..io.load import read_batch
 
 
 # --- assemble each group on its own -------------------------------------------------
@@ -88,7 +88,7 @@ def cli_add_arguments(parser) -> None:
                              f"{ALL_PAIRS_UP_TO} fragments, else {TOP_K})")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary on stderr")
     parser.add_argument("--group", action="store_true",
-                        help="sort the heap into objects first (relicgpu.grouping) and assemble each on its own")
+                        help="sort the heap into objects first (relicgpu.heap.grouping) and assemble each on its own")
     parser.add_argument("--classifier", default=None, metavar="WEIGHTS",
                         help="with --group: classify with weights from `relicgpu train-classifier`")
 

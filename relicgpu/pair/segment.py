@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .params import Params
+from ..params import Params
 from .segment_cues import cue_labels
 from .topology import components, merge_small, mesh_topology, otsu_split, ring_average, Topology, weighted_quantile
 
