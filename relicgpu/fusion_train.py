@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import fusion as fusion_mod
-from .features import dimensionless
+from .pair import fusion as fusion_mod
+from .pair.features import dimensionless
 from .params import Params
 
 SHAPES = ("vase", "torso", "slab")
@@ -131,7 +131,7 @@ def build_pairs(specs: list[ObjectSpec], params: Params | None = None, faces: in
     from tqdm import tqdm
 
     from . import synth
-    from .pipeline import prepare
+    from .pair.pipeline import prepare
 
     params = params or Params()
     key = json.dumps([CACHE_VERSION, _code_hash(), [s.__dict__ for s in specs], faces, pairs_per_object,
@@ -186,7 +186,7 @@ def lcs_score(pair: PairData, model, eps: float) -> LcsScore:
     """Run the circular LCS of match_pair over every contour pair with `model`'s fused values
     and count the correspondences that are true."""
     from .backends import resolve
-    from .lcs import circular_lcs
+    from .pair.lcs import circular_lcs
 
     be = resolve("numpy")
     fa = [fusion_mod.forward(model, x) for x in pair.inputs_a]
@@ -231,8 +231,8 @@ def lcs_check(pair: PairData, model, params: Params | None = None) -> LcsCheck:
     inlier distance as match_pair), and whether one of those starts is near the true pose.
     Cheap (no ICP, no verification): it isolates what the fusion changes."""
     from .backends import resolve
-    from .icp import ransac_poses
-    from .lcs import circular_lcs
+    from .pair.icp import ransac_poses
+    from .pair.lcs import circular_lcs
 
     params = params or Params()
     be = resolve("numpy")
@@ -268,7 +268,7 @@ def with_model(prepared, model, params: Params | None = None):
 def pair_result(pair: PairData, model, params: Params | None = None) -> tuple[bool, float, object]:
     """match_pair with `model`'s fused values: (correct, pose error, PairMatch). Correct = accepted
     with b's vertices within 1% of the object size (synth objects have unit size) RMS of the truth."""
-    from .pipeline import match_pair
+    from .pair.pipeline import match_pair
 
     params = (params or Params()).with_(second_segmentation=None)  # the model's own contours only
     pa, pb = with_model(pair.prepared_a, model, params), with_model(pair.prepared_b, model, params)

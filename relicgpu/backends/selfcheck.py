@@ -17,7 +17,7 @@ import functools
 
 import numpy as np
 
-from ..segment import mesh_topology
+from ..pair.topology import mesh_topology
 from . import numpy as ref
 
 FAMILIES = ("normals", "curvature", "flags", "lcs", "nearest", "covariance", "mosaic")
