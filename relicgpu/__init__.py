@@ -15,7 +15,7 @@ def __getattr__(name):
         from .params import Params
         return Params
     if name == "prepare":
-        from .pair.pipeline import prepare
+        from .pair.prepare import prepare
         return prepare
     if name == "match_pair":
         from .pair.pipeline import match_pair

@@ -11,7 +11,7 @@ import argparse
 import sys
 
 from . import fusion_train, mosaic, synth
-from .heap import grouping, run as heaprun
+from .heap import run as heaprun
 from .pair import match
 from .backends import cli as backends_cli
 from .cloud import triangulate
@@ -24,7 +24,7 @@ try:
 except ImportError as exc:  # the viewer extra (Flask) is not installed
     viewer_app = demo = exc
 
-__all__ = ["COMMANDS", "CliError", "main"]
+__all__ = ["COMMANDS", "main"]
 
 # subcommand -> (module, one-line help); a module that could not be imported is its ImportError
 COMMANDS = {
@@ -34,8 +34,8 @@ COMMANDS = {
     "assemble": (heaprun, "match and assemble a directory of fragments"),
     "view": (viewer_app, "serve the browser viewer of a workspace"),
     "train-fusion": (fusion_train, "train the feature-fusion MLP with torch"),
-    "group": (grouping, "sort a heap of fragments into groups by object"),
-    "train-classifier": (grouping, "train the supervised fragment classifier"),
+    "group": (heaprun, "sort a heap of fragments into groups by object"),
+    "train-classifier": (heaprun, "train the supervised fragment classifier"),
     "mosaic": (mosaic, "stitch overlapping photographs of a relic"),
     "mesh": (triangulate, "triangulate a point-cloud scan into a closed mesh"),
     "backends": (backends_cli, "list the compute backends available here"),

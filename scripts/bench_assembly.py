@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from relicgpu import synth
-from relicgpu.heap.assembly import ALL_PAIRS_UP_TO, assemble, TOP_K
+from relicgpu.heap.assembly import ALL_PAIRS_UP_TO, TOP_K, assemble
 from relicgpu.heap.evaluate import score_assembly
 from relicgpu.io.load import load_directory
 from relicgpu.params import Params, SEGMENTATIONS, with_segmentations

@@ -45,7 +45,7 @@ from relicgpu.pair import fusion as fusion_mod  # noqa: E402
 from relicgpu import fusion_train as ft  # noqa: E402
 from relicgpu.io.files import atomic_write_json  # noqa: E402
 from relicgpu.params import Params  # noqa: E402
-from relicgpu.pair.pipeline import prepare  # noqa: E402
+from relicgpu.pair.prepare import prepare  # noqa: E402
 
 # the baselines, on the inputs standardised with the trained model's statistics (so that the
 # flag threshold eps means the same spread for all three): curvature alone, and the four

@@ -40,6 +40,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from relicgpu.heap import grouping as G  # noqa: E402
+from relicgpu.heap import classifier as C  # noqa: E402
+from relicgpu.heap import describe as D  # noqa: E402
 from relicgpu import synth  # noqa: E402
 from relicgpu.heap.run import assemble_grouped  # noqa: E402
 from relicgpu.io.fragment import Fragment  # noqa: E402
@@ -223,7 +225,7 @@ def fit(seeds, edge, cache) -> None:
     heaps = []
     for s in seeds:
         frags, labels = mixture(s, edge, cache)
-        heaps.append((G.describe_all(frags, progress=True), labels))
+        heaps.append((D.describe_all(frags, progress=True), labels))
         print(f"described seed {s}: {len(frags)} fragments", file=sys.stderr)
 
     def fitted(hs):
@@ -243,8 +245,8 @@ def fit(seeds, edge, cache) -> None:
             cross += [ari(d, l, sc, wt) for d, l in test]
     print(f"FEATURE_SCALES = ({', '.join(f'{x:.4f}' for x in scales)})")
     print(f"PAIR_WEIGHTS = ({', '.join(f'{x:.3f}' for x in w)})")
-    print(f"# per knot block (z, then max(z - t, 0) for t in {G.Z_KNOTS}): {', '.join(G.FEATURE_NAMES)}, gaps of "
-          f"{', '.join(G.GAP_NAMES)}; then patch_match, intercept")
+    print(f"# per knot block (z, then max(z - t, 0) for t in {G.Z_KNOTS}): {', '.join(D.FEATURE_NAMES)}, gaps of "
+          f"{', '.join(D.GAP_NAMES)}; then patch_match, intercept")
     if cross:
         print(f"two-fold ARI over seeds {list(seeds)}: mean {np.mean(cross):.3f}, min {np.min(cross):.3f} "
               f"({', '.join(f'{a:.3f}' for a in cross)})")
@@ -323,7 +325,7 @@ def main(argv=None) -> int:
             train_f += frs
             train_l += [shape] * len(frs)
     t1 = time.perf_counter()
-    clf = G.train_classifier(train_f, train_l, epochs=args.epochs, seed=args.classifier_seed, progress=True)
+    clf = C.train_classifier(train_f, train_l, epochs=args.epochs, seed=args.classifier_seed, progress=True)
     t2 = time.perf_counter()
     print(f"\nSupervised PointNet: trained on {len(train_f)} fragments of {len(SHAPES)} shapes, synth seeds "
           f"{args.train_seeds} x10+k ({t1 - t0:.1f} s synth, {t2 - t1:.1f} s train, {args.epochs} epochs, "

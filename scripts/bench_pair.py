@@ -48,7 +48,8 @@ def main(argv=None) -> int:
     from relicgpu import synth
     from relicgpu.backends import resolve
     from relicgpu.pair.icp import rotation_angle_deg
-    from relicgpu.pair.pipeline import match_pair, pair_scale, prepare
+    from relicgpu.pair.pipeline import match_pair, pair_scale
+    from relicgpu.pair.prepare import prepare
 
     backend = resolve(args.backend)
     params = with_segmentations(Params(), args.segmentation, args.second_segmentation)

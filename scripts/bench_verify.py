@@ -285,8 +285,10 @@ def truth_samples(result, n_points: int = 1500) -> list:
 def forest(args) -> int:
     """Assembly with one wrong match among the right ones: part accuracy without and with recovery."""
     from relicgpu import corpus, synth
-    from relicgpu.heap import assembly
-    from relicgpu.heap.assembly import Edge, _finish_groups, closed_solid, grow_forest
+    from relicgpu.heap import forest as assembly
+    from relicgpu.heap.forest import Edge, grow_forest
+    from relicgpu.heap.assembly import _finish_groups
+    from relicgpu.heap.outputs import closed_solid
     from relicgpu.backends import numpy as ref
     from relicgpu.heap.evaluate import score
     from relicgpu.pair.icp import invert

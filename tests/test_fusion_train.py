@@ -89,7 +89,7 @@ def test_shipped_weights_are_a_trained_mlp_with_their_record():
     out = fusion_mod.fuse(np.random.default_rng(0).normal(size=(50, 4)), model)
     assert out.shape == (50,) and np.all(np.isfinite(out))
     # the record beside the weights describes these very weights and the command that made them
-    data = Path(fusion_mod.__file__).parent / "data"
+    data = Path(fusion_mod.__file__).parents[1] / "data"
     record = json.loads((data / "fusion_default.json").read_text())
     assert record["sha256"] == hashlib.sha256((data / "fusion_default.npz").read_bytes()).hexdigest()
     assert record["command"].startswith("relicgpu train-fusion ") and f"--seed {record['seed']}" in record["command"]

@@ -11,7 +11,7 @@ import trimesh
 from relicgpu.cloud import triangulate as pc
 from relicgpu.cloud.points import choose_voxel, voxel_thin
 from relicgpu.io.clouds import read_point_cloud
-from relicgpu.io.fragment import count_bodies, FragmentError, is_watertight
+from relicgpu.io.fragment import FragmentError, count_bodies, is_watertight
 from relicgpu.io.load import load_fragment
 
 

@@ -599,7 +599,7 @@ def test_waitress_streams_events_while_the_job_runs(box):
 def test_cli_defaults_and_loud_warning(box, capsys):
     import argparse
 
-    from relicgpu.cli import CliError
+    from relicgpu.errors import CliError
     from relicgpu.viewer.app import cli_add_arguments, cli_main
 
     p = argparse.ArgumentParser()

@@ -1,19 +1,22 @@
-"""Run a heap: `relicgpu assemble DIR -o OUT` (the command line of relicgpu.heap.assembly) and
-`assemble_grouped`, which sorts the heap into objects (relicgpu.heap.grouping) and assembles each."""
+"""The heap's commands: `relicgpu assemble DIR -o OUT` (relicgpu.heap.assembly), `relicgpu group`
+and `relicgpu train-classifier` (relicgpu.heap.grouping, relicgpu.heap.classifier); and
+`assemble_grouped`, which sorts the heap into objects and assembles each."""
 from __future__ import annotations
 
 import dataclasses
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
-from .assembly import ALL_PAIRS_UP_TO, assemble, TOP_K
+from .assembly import ALL_PAIRS_UP_TO, TOP_K, assemble
 from ..backends import BackendError
 from ..errors import CliError
-from .grouping import _load, Classifier, group_fragments, Grouping
+from .classifier import Classifier, read_labels_csv, train_classifier
+from .grouping import Grouping, LINK_CUT, _load, group_fragments
 from ..io.files import atomic_write_json, grouped_lines
-from ..io.load import read_batch
+from ..io.load import load_fragment, read_batch
 
 
 # --- assemble each group on its own -------------------------------------------------
@@ -73,7 +76,7 @@ def assemble_grouped(fragments_or_dir, out_dir=None, n_groups: int | None = None
 
 # --- command line ---------------------------------------------------------------------------
 
-def cli_add_arguments(parser) -> None:
+def _assemble_arguments(parser) -> None:
     parser.add_argument("directory", help="directory of fragment files (STL, PLY, OBJ, OFF, GLB, point clouds)")
     parser.add_argument("-o", "--out", required=True, help="output directory (created); the cache goes in OUT/cache")
     parser.add_argument("--backend", default="auto", help="numpy, warp-cpu, warp-cuda[:N], opencl[:PLATFORM] or auto")
@@ -93,7 +96,7 @@ def cli_add_arguments(parser) -> None:
                         help="with --group: classify with weights from `relicgpu train-classifier`")
 
 
-def cli_main(args) -> int:
+def _assemble_main(args) -> int:
     if args.workers is not None and args.workers < 1:
         raise CliError(f"--workers must be at least 1, got {args.workers}")
     if args.top_k is not None and args.top_k < 1:
@@ -143,3 +146,85 @@ def cli_main(args) -> int:
     merged = not any("no merged.stl written" in n for n in s.get("merge_notes", []))
     log(f"wrote {Path(args.out) / 'assembly.json'}, assembly.glb" + (", merged.stl" if merged else ""))
     return 0
+
+
+def _group_arguments(parser, name) -> None:
+    if name == "train-classifier":
+        parser.add_argument("labels", metavar="LABELS.csv", help="rows `file,label` (paths relative to the csv)")
+        parser.add_argument("-o", "--out", default=None,
+                            help="weights file to write (default: classifier.pt beside LABELS.csv)")
+        parser.add_argument("--epochs", type=int, default=120, help="training epochs (default: 120)")
+        parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+        parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+        return
+    parser.add_argument("directory", metavar="DIR", help="directory of fragment meshes")
+    parser.add_argument("-o", "--out", required=True, help="output directory (groups.json)")
+    parser.add_argument("--groups", type=int, default=None, help="number of groups (default: found)")
+    parser.add_argument("--distance", type=float, default=None,
+                        help=f"cut the tree where the mean probability of one object between two clusters "
+                             f"falls below 1 - DISTANCE (default: {LINK_CUT})")
+    parser.add_argument("--classifier", default=None, metavar="WEIGHTS",
+                        help="classify with weights from `relicgpu train-classifier` instead of clustering")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+
+
+def _group_main(args, name) -> int:
+    log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
+    if name == "train-classifier":
+        if args.epochs < 1:
+            raise CliError(f"--epochs must be at least 1, got {args.epochs}")
+        files, labels = read_labels_csv(args.labels)
+        out = Path(args.out) if args.out else Path(args.labels).parent / "classifier.pt"
+        if out.resolve() in {f.resolve() for f in files} or out.resolve() == Path(args.labels).resolve():
+            raise CliError(f"{out}: the weights file must not be an input")
+        fragments = [load_fragment(f) for f in files]
+        t0 = time.perf_counter()
+        clf = train_classifier(fragments, labels, args.epochs, args.seed, progress=not args.quiet)
+        clf.save(out)
+        pred, _ = clf.predict(fragments)
+        acc = float(np.mean([p == l for p, l in zip(pred, labels)]))
+        log(f"{len(fragments)} fragments, {len(clf.classes)} classes; training accuracy {acc:.3f}, "
+            f"final loss {clf.history[-1]:.3f} ({time.perf_counter() - t0:.1f} s); wrote {out}")
+        return 0
+
+    src = Path(args.directory)
+    if not src.is_dir():
+        raise CliError(f"{src}: not a directory")
+    if Path(args.out).resolve() == src.resolve():
+        raise CliError(f"{args.out}: the output directory must not be the input directory")
+    if args.groups is not None and args.groups < 1:
+        raise CliError(f"--groups must be at least 1, got {args.groups}")
+    batch = _load(src)
+    for line in batch.messages():  # every file or crumb left out, even with --quiet
+        print(line, file=sys.stderr)
+    batch.require(2)
+    fragments = batch.fragments
+    if args.classifier:
+        clf = Classifier.load(args.classifier)
+        pred, prob = clf.predict(fragments)
+        classes = sorted(set(pred), key=lambda c: (-pred.count(c), c))
+        doc = {"version": 1, "method": "classifier", "classes": classes,
+               "groups": [[fr.name for fr, p in zip(fragments, pred) if p == c] for c in classes],
+               "fragments": [{"name": fr.name, "file": fr.file, "group": classes.index(p), "label": p,
+                              "probability": float(pr.max())} for fr, p, pr in zip(fragments, pred, prob)]}
+    else:
+        if args.distance is not None and not 0.0 < args.distance < 1.0:
+            raise CliError(f"--distance must lie between 0 and 1, got {args.distance}")
+        doc = group_fragments(fragments, args.groups, args.distance, progress=not args.quiet).to_dict()
+    doc.update(skipped=batch.skipped, notes=batch.notes)
+    atomic_write_json(Path(args.out) / "groups.json", doc)
+    sizes = [len(x) for x in doc["groups"]]
+    log(f"{len(fragments)} fragments in {len(sizes)} group(s) of sizes {sizes}; wrote {Path(args.out) / 'groups.json'}")
+    return 0
+
+
+def cli_add_arguments(parser, name="assemble") -> None:
+    """The arguments of `relicgpu assemble`, `relicgpu group` or `relicgpu train-classifier`."""
+    if name == "assemble":
+        _assemble_arguments(parser)
+    else:
+        _group_arguments(parser, name)
+
+
+def cli_main(args, name="assemble") -> int:
+    return _assemble_main(args) if name == "assemble" else _group_main(args, name)

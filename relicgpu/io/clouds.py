@@ -148,6 +148,18 @@ def _read_text(p: Path, label: str):
 
 
 # PCD: https://pointclouds.org/documentation/tutorials/pcd_file_format.html
+def _binary_records(raw: bytes, dtypes, n_points: int, offset: int, fault: str, items: str) -> np.ndarray:
+    """n_points records of the structured dtype from raw[offset:]; `fault` raised (FragmentError)
+    when the file holds fewer bytes than that."""
+    dt = np.dtype(dtypes)
+    need = n_points * dt.itemsize
+    have = len(raw) - offset
+    if have < need:
+        raise FragmentError(f"{fault}: header declares {n_points} {items} of "
+                            f"{dt.itemsize} bytes ({need} bytes), the file holds {have} bytes of data")
+    return np.frombuffer(raw, dt, count=n_points, offset=offset)
+
+
 _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",
               ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
 
@@ -211,13 +223,7 @@ def _read_pcd(p: Path, label: str):
         table = arr
         row_to_line = _row_to_line(text.splitlines(), line_no + 1)
     elif mode == "binary":
-        dt = np.dtype(dtypes)
-        need = n_points * dt.itemsize
-        have = len(raw) - pos
-        if have < need:
-            raise FragmentError(f"{label}: truncated binary PCD: header declares {n_points} points of "
-                                f"{dt.itemsize} bytes ({need} bytes), the file holds {have} bytes of data")
-        rec = np.frombuffer(raw, dt, count=n_points, offset=pos)
+        rec = _binary_records(raw, dtypes, n_points, pos, f"{label}: truncated binary PCD", "points")
         table = np.column_stack([rec[a].astype(np.float64) for a in ("x", "y", "z")]
                                 + ([rec[a].astype(np.float64) for a in ("normal_x", "normal_y", "normal_z")]
                                    if all(a in fields for a in ("normal_x", "normal_y", "normal_z")) else []))
@@ -307,13 +313,7 @@ def _read_ply(p: Path, label: str):
         table = {name: arr[:, i] for i, name in enumerate(prop_names)}
         row_to_line = _row_to_line(lines, len(header_lines) + 1)
     else:
-        dt = np.dtype(dtypes)
-        need = n_points * dt.itemsize
-        have = len(raw) - body
-        if have < need:
-            raise FragmentError(f"{label}: truncated binary PLY: header declares {n_points} vertices of "
-                                f"{dt.itemsize} bytes ({need} bytes), the file holds {have} bytes of data")
-        rec = np.frombuffer(raw, dt, count=n_points, offset=body)
+        rec = _binary_records(raw, dtypes, n_points, body, f"{label}: truncated binary PLY", "vertices")
         table = {name: rec[name] for name in prop_names}
         row_to_line = None
     pts = np.column_stack([table[a] for a in "xyz"]).astype(np.float64)

@@ -16,9 +16,10 @@ from ..backends import BackendError, resolve
 from ..errors import CliError
 from ..io.files import atomic_write_bytes, atomic_write_json, ensure_not_input, grouped_lines
 from ..io.load import load_fragment
-from ..heap.outputs import scene_glb
+from ..io.glb import scene_glb
 from ..params import Params
-from .pipeline import match_pair, pair_scale, prepare
+from .pipeline import match_pair, pair_scale
+from .prepare import prepare
 
 COLOURS = [(214, 120, 72, 255), (72, 140, 214, 255)]
 

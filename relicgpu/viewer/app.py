@@ -35,7 +35,7 @@ import threading
 import traceback
 from pathlib import Path
 
-from flask import Flask, jsonify, request, Response
+from flask import Flask, Response, jsonify, request
 from werkzeug.exceptions import HTTPException
 
 from ..errors import CliError
