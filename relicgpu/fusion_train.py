@@ -131,7 +131,7 @@ def build_pairs(specs: list[ObjectSpec], params: Params | None = None, faces: in
     from tqdm import tqdm
 
     from . import synth
-    from .pair.pipeline import prepare
+    from .pair.prepare import prepare
 
     params = params or Params()
     key = json.dumps([CACHE_VERSION, _code_hash(), [s.__dict__ for s in specs], faces, pairs_per_object,
