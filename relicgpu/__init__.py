@@ -1,7 +1,8 @@
 """relicgpu: reassemble broken 3-D objects from fragment scans on GPU-portable kernels."""
 from __future__ import annotations
 
-from .io import Fragment, FragmentError, load_fragment
+from .io.fragment import Fragment, FragmentError
+from .io.load import load_fragment
 
 __version__ = "0.1.0"
 
@@ -14,15 +15,15 @@ def __getattr__(name):
         from .params import Params
         return Params
     if name == "prepare":
-        from .pipeline import prepare
+        from .pair.prepare import prepare
         return prepare
     if name == "match_pair":
-        from .pipeline import match_pair
+        from .pair.pipeline import match_pair
         return match_pair
     if name == "assemble":
-        from .assembly import assemble
+        from .heap.assembly import assemble
         return assemble
     if name == "group":
-        from .grouping import group
+        from .heap.grouping import group
         return group
     raise AttributeError(f"module 'relicgpu' has no attribute {name!r}")

@@ -14,6 +14,10 @@ import threading
 import time
 from pathlib import Path
 
+from . import synth
+from .errors import CliError
+from .viewer.app import bind, create_app, run_assembly, server_url
+
 DEFAULT_WORKSPACE = "demo-workspace"
 SHAPES = ("vase", "torso", "slab")
 
@@ -25,9 +29,6 @@ def case_name(shape: str, pieces: int, seed: int) -> str:
 def make_case(workspace: Path, shape: str = "vase", pieces: int = 4, seed: int = 1, fresh: bool = False,
               log=print) -> Path:
     """Synthesize and assemble the demo case (or reuse it); returns the case directory."""
-    from . import synth
-    from .viewer.app import run_assembly
-
     case = Path(workspace) / case_name(shape, pieces, seed)
     frag_dir = case / "fragments"
     have_fragments = frag_dir.is_dir() and (case / "truth.json").is_file() and any(frag_dir.iterdir())
@@ -73,9 +74,6 @@ def cli_add_arguments(parser) -> None:
 
 
 def cli_main(args) -> int:
-    from .cli import CliError
-    from .viewer.app import bind, create_app, server_url
-
     if args.pieces < 2:
         raise CliError(f"--pieces must be at least 2, got {args.pieces}")
     if args.seed < 0:

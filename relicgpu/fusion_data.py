@@ -14,13 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import contour, features, icp, pipeline, segment, synth, verify
-from . import fusion as fusion_mod
+from . import pair, synth
 from . import params as params_module
 from .backends import numpy as numpy_backend
-from .features import dimensionless
+from .pair import fusion as fusion_mod
+from .pair.features import dimensionless
+from .pair.prepare import prepare
 from .params import Params
-from .pipeline import prepare
 
 SHAPES = ("vase", "torso", "slab")
 
@@ -46,7 +46,7 @@ class PairData:
     i: int  # fragment a
     j: int  # fragment b
     scale: float
-    prepared_a: object  # relicgpu.pipeline.Prepared
+    prepared_a: object  # relicgpu.pair.prepare.Prepared
     prepared_b: object
     truth: np.ndarray  # (4,4) carrying b's file coordinates onto a's
     inputs_a: list  # per contour of a: (N,8) fusion inputs [g, f]
@@ -93,7 +93,7 @@ def true_correspondences(points_a: list, moved_b: list, within: float) -> np.nda
     return np.concatenate(out).astype(np.int64) if out else np.zeros((0, 4), np.int64)
 
 
-_DATA_MODULES = (synth, pipeline, segment, contour, features, icp, verify, params_module, numpy_backend)
+_DATA_MODULES = (synth, pair, params_module, numpy_backend)
 
 
 def _code_hash() -> str:

@@ -21,7 +21,7 @@ fragment splicing can be reduced". Here the weights are fitted on synthetic brea
 
 Only this module imports torch (lazily, inside the functions that train); the training
 pairs are made by relicgpu.fusion_data, and they and the scoring helpers here are plain
-NumPy and serve scripts/bench_fusion.py too. Inference is relicgpu.fusion (NumPy).
+NumPy and serve scripts/bench_fusion.py too. Inference is relicgpu.pair.fusion (NumPy).
 """
 from __future__ import annotations
 
@@ -32,14 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import fusion as fusion_mod
 from .backends import resolve
-from .cli import CliError
+from .errors import CliError
 from .fusion_data import TRUE_WITHIN, PairData, _move, build_pairs, contour_inputs, object_specs
-from .icp import ransac_poses
-from .lcs import circular_lcs
+from .pair import fusion as fusion_mod
+from .pair.icp import ransac_poses
+from .pair.lcs import circular_lcs
+from .pair.pipeline import match_pair
 from .params import Params
-from .pipeline import match_pair
 
 NEGATIVE_BEYOND = 0.03  # a negative (non-corresponding) pair lies at least this far apart
 

@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from relicgpu import synth
-from relicgpu.assembly import ALL_PAIRS_UP_TO, TOP_K, assemble
-from relicgpu.evaluate import score_assembly
-from relicgpu.io import load_directory
-from relicgpu.params import SEGMENTATIONS, Params, with_segmentations
+from relicgpu.heap.assembly import ALL_PAIRS_UP_TO, TOP_K, assemble
+from relicgpu.heap.evaluate import score_assembly
+from relicgpu.io.load import load_directory
+from relicgpu.params import Params, SEGMENTATIONS, with_segmentations
 
 SHAPES = ("vase", "torso", "slab")
 
@@ -52,7 +52,7 @@ def run_one(frag_dir: Path, truth: dict, args, out_dir: Path | None = None) -> d
     t0 = time.perf_counter()
     objects, group_time = None, 0.0
     if getattr(args, "group", False):
-        from relicgpu.grouping import group_fragments
+        from relicgpu.heap.grouping import group_fragments
         objects = group_fragments(frags).labels
         group_time = time.perf_counter() - t0
     params = with_segmentations(Params(), getattr(args, "segmentation", None),
@@ -237,7 +237,7 @@ def main(argv=None) -> int:
     ap.add_argument("--top-k", type=int, default=None,
                     help=f"partners per fragment matched in full (default: assemble's: every pair up to {ALL_PAIRS_UP_TO} fragments, else {TOP_K})")
     ap.add_argument("--group", action="store_true",
-                    help="classify the heap first (relicgpu.grouping) and match only within each class")
+                    help="classify the heap first (relicgpu.heap.grouping) and match only within each class")
     ap.add_argument("--segmentation", choices=SEGMENTATIONS,
                     help="Params.segmentation (default: Params' own)")
     ap.add_argument("--second-segmentation", choices=SEGMENTATIONS + ("none",),

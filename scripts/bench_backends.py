@@ -356,7 +356,7 @@ def main(argv=None) -> int:
     meta = {"host": platform.node(), "machine": platform.machine(), "python": platform.python_version(),
             "backends": devices, "repeats": args.repeats, "max_seconds": args.max_seconds,
             "time": time.strftime("%Y-%m-%d %H:%M:%S")}
-    from relicgpu.io import atomic_write_json
+    from relicgpu.io.files import atomic_write_json
 
     atomic_write_json(out / "bench_backends.json", {"meta": meta, "rows": rows})
     (out / "bench_backends.txt").write_text(text + "\n")

@@ -101,8 +101,8 @@ def check_outputs(out: Path, counts: dict) -> dict:
     merged = out / "merged.stl"
     facets = closed = None
     if merged.exists():
-        from relicgpu.io import STL_FACET
-        from relicgpu.outputs import is_closed
+        from relicgpu.io.files import STL_FACET
+        from relicgpu.heap.outputs import is_closed
 
         corners = np.fromfile(merged, STL_FACET, offset=84)["corners"].reshape(-1, 3)
         facets = len(corners) // 3

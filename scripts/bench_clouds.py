@@ -40,7 +40,7 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
 
     from relicgpu import synth
     from relicgpu.synth import corpus
-    from relicgpu.pointcloud import cloud_fragment
+    from relicgpu.cloud.points import cloud_fragment
 
     if source == "corpus":
         r = corpus.generate(CORPUS[k % 4], pieces=2, seed=k // 4, faces=4000)
@@ -61,7 +61,7 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
 
 def _cut_holes(fragment, fracture: np.ndarray, rng, holes: int = 3, radius: float = 0.06):
     """The fragment with `holes` round holes (radius a share of its size) cut into its skin."""
-    from relicgpu.io import Fragment
+    from relicgpu.io.fragment import Fragment
 
     centres = fragment.vertices[fragment.faces].mean(1)
     keep = np.ones(len(centres), bool)
@@ -77,7 +77,7 @@ def _cut_holes(fragment, fracture: np.ndarray, rng, holes: int = 3, radius: floa
 
 def score(a, b, truth, transform) -> tuple[float, float]:
     """Rotation error (degrees) and RMS of b's points relative to the object's size."""
-    from relicgpu.icp import rotation_angle_deg
+    from relicgpu.pair.icp import rotation_angle_deg
 
     rot = rotation_angle_deg(transform[:3, :3] @ truth[:3, :3].T)
     placed = b.vertices @ transform[:3, :3].T + transform[:3, 3]
@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     for mode, s in summary.items():
         print(f"  {mode:8s} {s['right']}/{s['pairs']} right, {s['wrong_accepted']} accepted at a wrong pose")
     if args.json:
-        from relicgpu.io import atomic_write_json
+        from relicgpu.io.files import atomic_write_json
         atomic_write_json(args.json, {"summary": summary, "rows": rows})
     return 0
 

@@ -41,12 +41,12 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from relicgpu import fusion as fusion_mod  # noqa: E402
 from relicgpu import fusion_data as fd  # noqa: E402
+from relicgpu.pair import fusion as fusion_mod  # noqa: E402
 from relicgpu import fusion_train as ft  # noqa: E402
-from relicgpu.io import atomic_write_json  # noqa: E402
+from relicgpu.io.files import atomic_write_json  # noqa: E402
 from relicgpu.params import Params  # noqa: E402
-from relicgpu.pipeline import prepare  # noqa: E402
+from relicgpu.pair.prepare import prepare  # noqa: E402
 
 # the baselines, on the inputs standardised with the trained model's statistics (so that the
 # flag threshold eps means the same spread for all three): curvature alone, and the four

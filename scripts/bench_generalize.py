@@ -4,7 +4,7 @@ Families come from `relicgpu.synth.corpus` (fracture kind x scan kind, twelve in
 ../shared/realdata sets with a known answer; the first row, "synth", is the control: the
 project's own generator, where the pipeline was tuned. Per row:
 
-  seg R / seg P   recall and precision of `relicgpu.segment`'s fracture faces (the labels
+  seg R / seg P   recall and precision of `relicgpu.pair.segment`'s fracture faces (the labels
                   `pipeline.prepare` uses) against the generator's, counted over all faces
   pairs right     two-piece objects: `match_pair` accepted, rotation error < 2 degrees and
                   vertex RMS < 1% of the object size (largest side of its bounding box)
@@ -30,9 +30,9 @@ import time
 
 import numpy as np
 
-from relicgpu.evaluate import relative_pose_error, score
+from relicgpu.heap.evaluate import relative_pose_error, score
 from relicgpu.synth import corpus
-from relicgpu.icp import invert
+from relicgpu.pair.icp import invert
 from relicgpu.params import SEGMENTATIONS, Params, with_segmentations
 
 QUICK = {"seeds": "0", "faces": 3000, "multi_faces": 1500, "pieces": "5", "realdata_assemble": False}
@@ -53,7 +53,7 @@ def make_case(family: str, pieces: int | None, seed: int, faces: int):
 
 def segmentation_counts(result, params: Params, backend) -> dict:
     """True positives, predicted and true fracture faces of `segment` over all fragments."""
-    from relicgpu.segment import segment
+    from relicgpu.pair.segment import segment
 
     tp = pred = true = faces = 0
     for frag, truth in zip(result.fragments, result.fracture_faces):
@@ -71,7 +71,7 @@ def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def pair_case(result, params: Params, backend) -> dict:
     """match_pair on a two-piece object: b = fragment 1 carried onto a = fragment 0."""
-    from relicgpu.pipeline import match_pair
+    from relicgpu.pair.pipeline import match_pair
 
     size = corpus.object_size(result)
     a, b = result.fragments
@@ -85,8 +85,8 @@ def pair_case(result, params: Params, backend) -> dict:
 
 def cloud_pair_case(name: str, params: Params, backend) -> dict:
     """The Breaking Bad bottle (two point clouds): the inverse of solution.json's T carries obj2 onto obj1."""
-    from relicgpu.io import load_fragment
-    from relicgpu.pipeline import match_pair
+    from relicgpu.io.load import load_fragment
+    from relicgpu.pair.pipeline import match_pair
 
     folder = corpus.REALDATA / name
     a, b = load_fragment(folder / "obj1_challenge.ply"), load_fragment(folder / "obj2_challenge.ply")
@@ -101,7 +101,7 @@ def cloud_pair_case(name: str, params: Params, backend) -> dict:
 
 
 def assembly_case(result, params: Params, backend, workers: int) -> dict:
-    from relicgpu.assembly import assemble
+    from relicgpu.heap.assembly import assemble
 
     size = corpus.object_size(result)
     asm = assemble(list(result.fragments), params, backend, engine="local", workers=workers, progress=False)

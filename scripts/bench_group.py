@@ -39,10 +39,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from relicgpu import grouping as G  # noqa: E402
+from relicgpu.heap import grouping as G  # noqa: E402
+from relicgpu.heap import classifier as C  # noqa: E402
+from relicgpu.heap import describe as D  # noqa: E402
 from relicgpu import synth  # noqa: E402
 from relicgpu.synth.generator import _AREA_GUESS, _AREA_GUESS_FILE  # noqa: E402
-from relicgpu.io import Fragment  # noqa: E402
+from relicgpu.heap.run import assemble_grouped  # noqa: E402
+from relicgpu.io.fragment import Fragment  # noqa: E402
 
 SHAPES = ("vase", "torso", "slab", "tube", "ring", "brick", "capsule", "bowl")
 N_OBJECTS = (3, 5, 8, 4, 6, 7, 3, 8)  # per mixture seed, cycled
@@ -151,10 +154,10 @@ def mixture(seed, edge, cache):
 
 def object_edges(frags, labels):
     """Per object of a heap: (median edge length on fracture faces, on the other faces), the
-    faces told apart by relicgpu.segment as the grouping sees them."""
+    faces told apart by relicgpu.pair.segment as the grouping sees them."""
     from relicgpu.backends import resolve
     from relicgpu.params import Params
-    from relicgpu.segment import segment
+    from relicgpu.pair.segment import segment
 
     per = {}
     for fr, lab in zip(frags, labels):
@@ -168,8 +171,8 @@ def object_edges(frags, labels):
 
 
 def _score(assemblies, fragments, objects, true_poses, touching):
-    """Part accuracy (relicgpu.evaluate) of one or several Assemblies over the whole mixture."""
-    from relicgpu.evaluate import score
+    """Part accuracy (relicgpu.heap.evaluate) of one or several Assemblies over the whole mixture."""
+    from relicgpu.heap.evaluate import score
 
     index = {f.name: i for i, f in enumerate(fragments)}
     poses, groups, used = [None] * len(fragments), [0] * len(fragments), []
@@ -185,7 +188,7 @@ def _score(assemblies, fragments, objects, true_poses, touching):
 def bench_assembly(faces: int, pieces: int = 5) -> None:
     """assemble_grouped (what `relicgpu assemble --group` runs) vs assembling the heap at once vs
     each object alone (known answer), on one heap of a vase, a torso and a slab."""
-    from relicgpu.assembly import assemble
+    from relicgpu.heap.assembly import assemble
 
     fragments, objects, true_poses, touching = [], [], [], []
     for k, (shape, seed) in enumerate([("vase", 501), ("torso", 502), ("slab", 503)]):
@@ -201,7 +204,7 @@ def bench_assembly(faces: int, pieces: int = 5) -> None:
     rows.append(("each object alone (truth)", time.perf_counter() - t0, _score(alone, fragments, objects, true_poses,
                                                                              touching)))
     t0 = time.perf_counter()
-    grouping, results = G.assemble_grouped(fragments, progress=False)
+    grouping, results = assemble_grouped(fragments, progress=False)
     t_grouped = time.perf_counter() - t0
     rows.append((f"assemble_grouped ({len(grouping.groups)} groups)", t_grouped,
                  _score([r for r in results if r is not None], fragments, objects, true_poses, touching)))
@@ -223,7 +226,7 @@ def fit(seeds, edge, cache) -> None:
     heaps = []
     for s in seeds:
         frags, labels = mixture(s, edge, cache)
-        heaps.append((G.describe_all(frags, progress=True), labels))
+        heaps.append((D.describe_all(frags, progress=True), labels))
         print(f"described seed {s}: {len(frags)} fragments", file=sys.stderr)
 
     def fitted(hs):
@@ -243,8 +246,8 @@ def fit(seeds, edge, cache) -> None:
             cross += [ari(d, l, sc, wt) for d, l in test]
     print(f"FEATURE_SCALES = ({', '.join(f'{x:.4f}' for x in scales)})")
     print(f"PAIR_WEIGHTS = ({', '.join(f'{x:.3f}' for x in w)})")
-    print(f"# per knot block (z, then max(z - t, 0) for t in {G.Z_KNOTS}): {', '.join(G.FEATURE_NAMES)}, gaps of "
-          f"{', '.join(G.GAP_NAMES)}; then patch_match, intercept")
+    print(f"# per knot block (z, then max(z - t, 0) for t in {G.Z_KNOTS}): {', '.join(D.FEATURE_NAMES)}, gaps of "
+          f"{', '.join(D.GAP_NAMES)}; then patch_match, intercept")
     if cross:
         print(f"two-fold ARI over seeds {list(seeds)}: mean {np.mean(cross):.3f}, min {np.min(cross):.3f} "
               f"({', '.join(f'{a:.3f}' for a in cross)})")
@@ -295,7 +298,7 @@ def main(argv=None) -> int:
               f"ARI {ari:.3f} ({t2 - t1:.1f} s)", file=sys.stderr)
 
     print(f"\nScan resolution: median edge length per object / --edge, on its fracture and original faces "
-          f"(relicgpu.segment), over the objects of all mixtures")
+          f"(relicgpu.pair.segment), over the objects of all mixtures")
     print(f"{'surface':>8} {'min':>6} {'q25':>6} {'median':>6} {'q75':>6} {'max':>6}")
     for name, col in (("fracture", 0), ("original", 1)):
         x = np.array([e[col] for e in edges]) / args.edge
@@ -323,7 +326,7 @@ def main(argv=None) -> int:
             train_f += frs
             train_l += [shape] * len(frs)
     t1 = time.perf_counter()
-    clf = G.train_classifier(train_f, train_l, epochs=args.epochs, seed=args.classifier_seed, progress=True)
+    clf = C.train_classifier(train_f, train_l, epochs=args.epochs, seed=args.classifier_seed, progress=True)
     t2 = time.perf_counter()
     print(f"\nSupervised PointNet: trained on {len(train_f)} fragments of {len(SHAPES)} shapes, synth seeds "
           f"{args.train_seeds} x10+k ({t1 - t0:.1f} s synth, {t2 - t1:.1f} s train, {args.epochs} epochs, "

@@ -256,7 +256,7 @@ def example(path: str, seed: int = 3) -> None:
     import matplotlib.pyplot as plt
 
     from relicgpu import mosaic
-    from relicgpu.io import atomic_write_bytes
+    from relicgpu.io.files import atomic_write_bytes
 
     import skimage.data
     img = skimage.data.astronaut()
@@ -317,7 +317,7 @@ def main(argv=None) -> int:
     result = run(args.pairs, args.seed, args.backend, noise=tuple(args.noise))
     print(summarise(result))
     if args.json:
-        from relicgpu.io import atomic_write_json
+        from relicgpu.io.files import atomic_write_json
         atomic_write_json(args.json, result)
     return 0
 

@@ -47,8 +47,9 @@ def main(argv=None) -> int:
 
     from relicgpu import synth
     from relicgpu.backends import resolve
-    from relicgpu.icp import rotation_angle_deg
-    from relicgpu.pipeline import match_pair, pair_scale, prepare
+    from relicgpu.pair.icp import rotation_angle_deg
+    from relicgpu.pair.pipeline import match_pair, pair_scale
+    from relicgpu.pair.prepare import prepare
 
     backend = resolve(args.backend)
     params = with_segmentations(Params(), args.segmentation, args.second_segmentation)
@@ -94,7 +95,7 @@ def main(argv=None) -> int:
         print(f"| {r['vertices'][0]}/{r['vertices'][1]} | {r['paper_vertices'][0]}/{r['paper_vertices'][1]} | {cells} | "
               f"{r['paper_ms']} | {'yes' if r['accepted'] else 'no'} | {r['rotation_error_deg']:.2f} |")
     if args.json:
-        from relicgpu.io import atomic_write_json
+        from relicgpu.io.files import atomic_write_json
         atomic_write_json(args.json, {"backend": backend.name, "repeats": args.repeats, "rows": rows})
     return 0
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark: read and mesh a large point cloud (relicgpu.pointcloud).
+"""Benchmark: read and mesh a large point cloud (relicgpu.cloud).
 
 Samples N points (default 1 million) uniformly on the surface of a fragment,
 moves each by up to NOISE (a fraction of the fragment size) in a random
@@ -84,7 +84,9 @@ def main(argv=None) -> int:
 
     import trimesh
 
-    from relicgpu import pointcloud as pc
+    from relicgpu.cloud import triangulate as pc
+    from relicgpu.cloud.refine import closed_manifold_fault
+    from relicgpu.io.clouds import read_point_cloud
 
     max_points = pc.MAX_POINTS if args.max_points is None else (args.max_points or None)
     mesh, label = source_mesh(args.source, args.seed)
@@ -102,7 +104,7 @@ def main(argv=None) -> int:
         rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         tracemalloc.start()
         t0 = time.perf_counter()
-        cloud = pc.read_point_cloud(path)
+        cloud = read_point_cloud(path)
         t_read = time.perf_counter() - t0
         t1 = time.perf_counter()
         result = pc.triangulate(cloud.points, max_points=max_points, progress=sys.stderr.isatty(), label=str(path))
@@ -111,7 +113,7 @@ def main(argv=None) -> int:
         tracemalloc.stop()
         rss_peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
-    fault = pc.closed_manifold_fault(result.vertices, result.faces)
+    fault = closed_manifold_fault(result.vertices, result.faces)
     out = trimesh.Trimesh(result.vertices, result.faces, process=False)
     figures = {
         "points": args.points, "source": label, "format": args.format, "noise": args.noise,
@@ -146,7 +148,7 @@ def main(argv=None) -> int:
     for note in result.notes:
         print(f"note: {note}")
     if args.json:
-        from relicgpu.io import atomic_write_json
+        from relicgpu.io.files import atomic_write_json
         atomic_write_json(args.json, figures)
     return 0 if fault is None else 1
 

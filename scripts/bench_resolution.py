@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     from relicgpu import synth
     from relicgpu.synth import corpus
     from relicgpu.params import Params
-    from relicgpu.pipeline import match_pair
+    from relicgpu.pair.pipeline import match_pair
 
     spacings = [None] if args.roughness_spacing is None else [float(x) for x in args.roughness_spacing.split(",")]
     params = [Params() if s is None else Params(roughness_spacing=s) for s in spacings]

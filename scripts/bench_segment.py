@@ -1,6 +1,6 @@
 """Fracture-segmentation recall and precision per family (issue 16, item 2).
 
-Area-weighted face recall / precision of `relicgpu.segment` against each generator's labels, a row
+Area-weighted face recall / precision of `relicgpu.pair.segment` against each generator's labels, a row
 per family and a column pair per `Params.segmentation` method: relicgpu.synth shapes (vase, torso,
 slab; --synth-noise, 0 being the assembly grid's), relicgpu.synth.corpus families (where that module is
 present) and the ../shared/realdata Blender sets (corpus.realdata). Families marked * were held out
@@ -21,7 +21,7 @@ import numpy as np
 from relicgpu import synth
 from relicgpu.backends import numpy as ref
 from relicgpu.params import Params
-from relicgpu.segment import segment
+from relicgpu.pair.segment import segment
 
 HELD_OUT = ("voronoi", "vessel", "real-")  # untouched by the choice of the hybrid thresholds
 

@@ -108,9 +108,9 @@ def remeshed_pair(shape: str, seed: int, n_points: int = 40000, noise: float = 0
     by the project's own mesher (returns the SynthResult and the two remeshed Fragments)."""
     import trimesh
 
-    from relicgpu import pointcloud as pc
+    from relicgpu.cloud import triangulate as pc
     from relicgpu import synth
-    from relicgpu.io import Fragment
+    from relicgpu.io.fragment import Fragment
 
     result = synth.generate(shape, pieces=2, seed=seed, progress=False)
     out = []
@@ -127,10 +127,10 @@ def remeshed_pair(shape: str, seed: int, n_points: int = 40000, noise: float = 0
 
 
 def collect(args) -> int:
-    import relicgpu.pipeline as pl
+    import relicgpu.pair.pipeline as pl
     from relicgpu.backends import resolve
-    from relicgpu.evaluate import relative_pose_error
-    from relicgpu.icp import rotation_angle_deg
+    from relicgpu.heap.evaluate import relative_pose_error
+    from relicgpu.pair.icp import rotation_angle_deg
     from relicgpu.params import Params, with_segmentations
 
     # one reading's fits: the spy refuses every fit, so a second reading would run on every pair
@@ -177,7 +177,7 @@ def collect(args) -> int:
 
 def fit_table(records: list, backend) -> list[dict]:
     """One row per recorded fit: its case, label, today's verdict and `verify.fit_cues`."""
-    from relicgpu.verify import fit_cues
+    from relicgpu.pair.verify import fit_cues
 
     rows = []
     for pair, rec in enumerate(records):
@@ -269,8 +269,8 @@ def report(args) -> int:
 def truth_samples(result, n_points: int = 1500) -> list:
     """Surface samples from the generator's fracture labels (the forest apart from segmentation)."""
     from relicgpu.backends import numpy as ref
-    from relicgpu.pointcloud import even_subsample
-    from relicgpu.verify import SurfaceSample, vertex_normals
+    from relicgpu.cloud.points import even_subsample
+    from relicgpu.pair.verify import SurfaceSample, vertex_normals
 
     out = []
     for frag, frac in zip(result.fragments, result.fracture_faces):
@@ -285,12 +285,15 @@ def truth_samples(result, n_points: int = 1500) -> list:
 
 def forest(args) -> int:
     """Assembly with one wrong match among the right ones: part accuracy without and with recovery."""
-    from relicgpu import assembly, synth
+    from relicgpu import synth
     from relicgpu.synth import corpus
-    from relicgpu.assembly import Edge, _finish_groups, closed_solid, grow_forest
+    from relicgpu.heap import forest as assembly
+    from relicgpu.heap.forest import Edge, grow_forest
+    from relicgpu.heap.assembly import _finish_groups
+    from relicgpu.heap.outputs import closed_solid
     from relicgpu.backends import numpy as ref
-    from relicgpu.evaluate import score
-    from relicgpu.icp import invert
+    from relicgpu.heap.evaluate import score
+    from relicgpu.pair.icp import invert
     from relicgpu.params import Params
 
     rounds = assembly.RECOVERY_ROUNDS

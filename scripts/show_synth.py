@@ -16,7 +16,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from relicgpu import synth  # noqa: E402
-from relicgpu.io import load_fragment  # noqa: E402
+from relicgpu.io.load import load_fragment  # noqa: E402
 
 COLOURS = np.array([
     [0.90, 0.45, 0.25], [0.30, 0.60, 0.85], [0.45, 0.75, 0.35], [0.85, 0.75, 0.30], [0.65, 0.45, 0.80],

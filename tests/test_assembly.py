@@ -15,14 +15,15 @@ import pytest
 import trimesh
 
 from relicgpu import synth
-from relicgpu.assembly import (CLASH_THICKNESS, Edge, _finish_groups, _inv, assemble, closed_solid, grow_forest,
-                               lcs_lengths_bitparallel, overlap_volume, penetration, refine_poses, screen,
-                               select_candidates)
+from relicgpu.heap.forest import CLASH_THICKNESS, Edge, _inv, grow_forest, overlap_volume, penetration, refine_poses
+from relicgpu.heap.assembly import _finish_groups, assemble
+from relicgpu.heap.outputs import closed_solid
+from relicgpu.heap.screen import lcs_lengths_bitparallel, screen, select_candidates
 from relicgpu.backends import numpy as ref
-from relicgpu.evaluate import score, score_assembly
-from relicgpu.io import load_directory
+from relicgpu.heap.evaluate import score, score_assembly
+from relicgpu.io.load import load_directory
 from relicgpu.params import Params
-from relicgpu.verify import SurfaceSample, vertex_normals
+from relicgpu.pair.verify import SurfaceSample, vertex_normals
 
 SMALL = dict(shape="vase", pieces=4, seed=0, faces=1200)
 # Small enough for the CLI and resume tests; many-piece objects are in the mixed-directory test
@@ -194,7 +195,7 @@ def test_forest_refuses_interpenetration_and_a_disagreeing_loop(broken):
 def test_forest_drops_a_wrong_match_scored_above_the_right_ones(broken, recovery, monkeypatch):
     # a wrong match of a touching pair (b pulled 10% of the scale away from a: no interpenetration,
     # so only the loops of the other matches say it is wrong), scored above every right one
-    import relicgpu.assembly as assembly
+    import relicgpu.heap.forest as assembly
 
     if not recovery:
         monkeypatch.setattr(assembly, "RECOVERY_ROUNDS", 0)
@@ -441,7 +442,7 @@ def test_forest_weighs_each_rival_placement_alone(broken, monkeypatch):
     # fragment 3 touches 0, 1 and 2: one right match (1, 3) and two wrong ones, each placing 3 at
     # its own wrong place (pulled off the object by 10% and 20% of the scale: no interpenetration).
     # Summed, the wrong ones outweigh the right one; each alone does not, and wrong matches scatter
-    import relicgpu.assembly as assembly
+    import relicgpu.heap.forest as assembly
 
     monkeypatch.setattr(assembly, "RECOVERY_ROUNDS", 0)  # the rule itself, not the recovery after it
     samples = truth_samples(broken)

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from relicgpu import synth
-from relicgpu.assembly import assemble
-from relicgpu.engines import Job, LocalEngine, make_engine
-from relicgpu.io import load_directory
+from relicgpu.heap.assembly import assemble
+from relicgpu.heap.engines import Job, LocalEngine, make_engine
+from relicgpu.io.load import load_directory
 
 
 def _square(payload, *shared):
@@ -125,7 +125,7 @@ def test_ray_worker_killed_mid_run_is_retried_and_nothing_is_lost(ray_session, s
 
 def test_ray_tasks_ask_for_a_gpu_only_for_a_gpu_backend():
     from relicgpu.backends import get_backend
-    from relicgpu.engines import on_gpu, task_gpus
+    from relicgpu.heap.engines import on_gpu, task_gpus
 
     assert not on_gpu(get_backend("numpy"))
     assert task_gpus(1, None, needs_gpu=False) == 0.0  # numpy on a GPU host: all CPUs work at once

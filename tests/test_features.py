@@ -4,7 +4,7 @@ import pytest
 
 from relicgpu.backends import resolve
 from relicgpu.backends import numpy as ref
-from relicgpu.features import contour_features, dimensionless, smooth_closed, smoothing_sigma
+from relicgpu.pair.features import contour_features, dimensionless, smooth_closed, smoothing_sigma
 
 
 def _circle(n, r=1.0):

@@ -9,7 +9,7 @@ import trimesh
 
 from relicgpu import synth
 from relicgpu.cli import main
-from relicgpu.io import fragment_ids, load_fragment, load_fragments, read_batch
+from relicgpu.io.load import fragment_ids, load_fragment, load_fragments, read_batch
 
 
 def _box(extents=(1, 2, 3), at=(0, 0, 0)):
@@ -149,7 +149,7 @@ def test_duplicate_stems_get_distinct_names(tmp_path):
 
 
 def test_assemble_writes_skipped_and_notes(pair_dir, tmp_path):
-    from relicgpu.assembly import assemble
+    from relicgpu.heap.assembly import assemble
 
     out = tmp_path / "out"
     files = sorted(pair_dir.iterdir())
@@ -212,8 +212,8 @@ def _slab_halves_as_clouds(d, n=2500):
 def faceless(tmp_path, monkeypatch):
     """Clouds that load as CloudFragments: the triangulation is made to fail, as it does on sparse,
     thin or open scans."""
-    from relicgpu import pointcloud
-    from relicgpu.io import FragmentError
+    from relicgpu.cloud import triangulate as pointcloud
+    from relicgpu.io.fragment import FragmentError
 
     def no_solid(*a, label="", **k):
         raise FragmentError(f"{label}: no closed surface found (test)")
@@ -225,7 +225,7 @@ def faceless(tmp_path, monkeypatch):
 
 
 def test_cli_assemble_and_match_run_on_faceless_clouds(faceless, tmp_path, capsys):
-    from relicgpu.pointcloud import CloudFragment
+    from relicgpu.cloud.points import CloudFragment
 
     assert all(isinstance(load_fragment(p), CloudFragment) for p in faceless.iterdir())
     out = tmp_path / "out"
@@ -253,8 +253,8 @@ def test_cli_assemble_and_match_run_on_faceless_clouds(faceless, tmp_path, capsy
 
 
 def test_merged_stl_caps_holes_and_says_what_it_could_not_close():
-    from relicgpu.outputs import cap_holes, merged_solid
-    from relicgpu.pointcloud import cloud_fragment
+    from relicgpu.heap.outputs import cap_holes, merged_solid
+    from relicgpu.cloud.points import cloud_fragment
 
     sphere = trimesh.creation.icosphere(subdivisions=3)
     centres = sphere.triangles_center
@@ -289,15 +289,15 @@ def test_merged_stl_caps_holes_and_says_what_it_could_not_close():
 def fragment_from_arrays_quiet(name, v, f):
     import warnings
 
-    from relicgpu.io import fragment_from_arrays
+    from relicgpu.io.fragment import fragment_from_arrays
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return fragment_from_arrays(name, np.asarray(v, float), np.asarray(f))
 
 
 def test_big_meshes_are_thinned_at_load_and_written_in_full(tmp_path, capsys):
-    from relicgpu.assembly import Assembly
-    from relicgpu.outputs import write_outputs
+    from relicgpu.heap.assembly import Assembly
+    from relicgpu.heap.outputs import write_outputs
 
     sphere = trimesh.creation.icosphere(subdivisions=7)  # 327,680 faces
     sphere.vertices *= 1 + 0.002 * np.random.default_rng(0).normal(size=(len(sphere.vertices), 1))
@@ -320,7 +320,7 @@ def test_big_meshes_are_thinned_at_load_and_written_in_full(tmp_path, capsys):
 
 
 def test_repeated_notes_are_one_line_a_kind():
-    from relicgpu.io import Batch
+    from relicgpu.io.load import Batch
 
     notes = [f"f{i}.ply: the mesh is not watertight (open boundary); accepted, as scans often are" for i in range(45)]
     notes += [f"g{i}.ply: {i + 2} bodies: kept 1 (g{i}), dropped {i + 1} crumb(s) under 1% of the largest body's area"
@@ -362,8 +362,8 @@ def _slab_half_points(n=2500):
 
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
 def test_las_and_laz_clouds_read_their_points_and_normals(tmp_path, suffix):
-    from relicgpu.io import read_las
-    from relicgpu.pointcloud import read_point_cloud
+    from relicgpu.io.las import read_las
+    from relicgpu.io.clouds import read_point_cloud
 
     laspy = pytest.importorskip("laspy")
     if suffix == ".laz" and not laspy.LazBackend.detect_available():
@@ -382,7 +382,7 @@ def test_las_and_laz_clouds_read_their_points_and_normals(tmp_path, suffix):
 
 
 def test_las_normals_named_nx_ny_nz_or_absent(tmp_path):
-    from relicgpu.io import read_las
+    from relicgpu.io.las import read_las
 
     points, normals = _slab_half_points(500)
     _, got, _ = read_las(_write_las(tmp_path / "n.las", points, normals, ("nx", "ny", "nz")))
@@ -396,7 +396,7 @@ def test_las_normals_named_nx_ny_nz_or_absent(tmp_path):
 
 
 def test_a_corrupt_las_is_one_line_naming_it_and_a_batch_skips_it(tmp_path):
-    from relicgpu.io import FragmentError
+    from relicgpu.io.fragment import FragmentError
 
     pytest.importorskip("laspy")
     points, normals = _slab_half_points()
@@ -417,7 +417,7 @@ def test_a_corrupt_las_is_one_line_naming_it_and_a_batch_skips_it(tmp_path):
 
 
 def test_a_union_too_big_for_memory_is_written_as_separate_shells_and_says_so(monkeypatch):
-    from relicgpu import outputs
+    from relicgpu.heap import outputs
 
     box = fragment_from_arrays_quiet("box", _box().vertices, _box().faces)
     near = np.eye(4)
@@ -434,7 +434,7 @@ def test_a_union_too_big_for_memory_is_written_as_separate_shells_and_says_so(mo
 
 
 def test_a_union_that_does_not_close_as_written_says_so():
-    from relicgpu.outputs import merged_solid
+    from relicgpu.heap.outputs import merged_solid
 
     box = fragment_from_arrays_quiet("box", _box().vertices, _box().faces)
     corner = np.eye(4)

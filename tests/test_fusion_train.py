@@ -9,8 +9,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from relicgpu import fusion as fusion_mod  # noqa: E402
 from relicgpu import fusion_data as fd  # noqa: E402
+from relicgpu.pair import fusion as fusion_mod  # noqa: E402
 from relicgpu import fusion_train as ft  # noqa: E402
 from relicgpu.params import Params  # noqa: E402
 
@@ -90,7 +90,7 @@ def test_shipped_weights_are_a_trained_mlp_with_their_record():
     out = fusion_mod.fuse(np.random.default_rng(0).normal(size=(50, 4)), model)
     assert out.shape == (50,) and np.all(np.isfinite(out))
     # the record beside the weights describes these very weights and the command that made them
-    data = Path(fusion_mod.__file__).parent / "data"
+    data = Path(fusion_mod.__file__).parents[1] / "data"
     record = json.loads((data / "fusion_default.json").read_text())
     assert record["sha256"] == hashlib.sha256((data / "fusion_default.npz").read_bytes()).hexdigest()
     assert record["command"].startswith("relicgpu train-fusion ") and f"--seed {record['seed']}" in record["command"]

@@ -6,10 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from relicgpu import grouping as G
 from relicgpu import synth
 from relicgpu.synth.generator import _AREA_GUESS
-from relicgpu.io import Fragment, FragmentError
+from relicgpu.heap import classifier as C, describe as D, grouping as G
+from relicgpu.heap.run import assemble_grouped
+from relicgpu.io.fragment import Fragment, FragmentError
 
 
 def _scaled(frags, s, prefix):
@@ -71,7 +72,7 @@ def test_wall_thickness_of_a_tube():
     tube = mf.Manifold.cylinder(2.0, 0.5, 0.5, 96) - mf.Manifold.cylinder(2.2, 0.4, 0.4, 96).translate((0, 0, -0.1))
     m = tube.to_mesh()
     frag = Fragment("tube", np.asarray(m.vert_properties, float)[:, :3], np.asarray(m.tri_verts, np.int32))
-    d = G.describe(frag)
+    d = D.describe(frag)
     assert d.thickness == pytest.approx([0.1, 0.1, 0.1], rel=0.02)
     assert d.chord == pytest.approx(d.thickness) and d.wall_share > 0.9  # every inward ray meets the wall
 
@@ -81,7 +82,7 @@ def test_solid_pieces_have_chords_hollow_ones_walls():
     share = {}
     for shape in ("torso", "vase"):
         r = synth.generate(shape, pieces=6, seed=1, faces=1500, progress=False)
-        d = [G.describe(f) for f in r.fragments]
+        d = [D.describe(f) for f in r.fragments]
         assert all(np.all(np.isfinite(x.chord)) for x in d)
         share[shape] = np.median([x.wall_share for x in d])
     assert share["torso"] < 0.4 and share["vase"] > 0.7
@@ -93,7 +94,7 @@ def test_curvature_of_a_cylinder():
 
     c = trimesh.creation.cylinder(radius=1.0, height=3.0, sections=96)
     v, f = subdivide_to_size(c.vertices, c.faces, max_edge=0.1)
-    d = G.describe(Fragment("cyl", np.asarray(v, float), np.asarray(f, np.int32)))
+    d = D.describe(Fragment("cyl", np.asarray(v, float), np.asarray(f, np.int32)))
     side = d.curvatures[np.abs(d.curvatures[:, 0] - 1.0) < 0.1]
     assert len(side) > 0.5 * len(d.curvatures)  # the side holds most of the area
     assert np.abs(side[:, 1]).max() < 0.05  # along the axis: flat
@@ -105,7 +106,7 @@ def test_solid_piece_has_a_chord_but_no_wall():
     """A ball cut in half by a rough surface: rays from the dome end on the cut (fracture), not on
     the original surface again: no wall thickness, a chord, few wall hits."""
     r = synth.generate("torso", pieces=2, seed=1, faces=3000, progress=False)
-    d = G.describe(r.fragments[0])
+    d = D.describe(r.fragments[0])
     assert d.wall_share < 0.5
     assert np.all(np.isfinite(d.chord))
 
@@ -113,7 +114,7 @@ def test_solid_piece_has_a_chord_but_no_wall():
 def test_curvature_of_a_sphere():
     import trimesh
     ball = trimesh.creation.icosphere(subdivisions=4, radius=2.0)
-    d = G.describe(Fragment("ball", np.asarray(ball.vertices, float), np.asarray(ball.faces, np.int32)))
+    d = D.describe(Fragment("ball", np.asarray(ball.vertices, float), np.asarray(ball.faces, np.int32)))
     assert np.allclose(d.kmax, 0.5, rtol=0.05) and np.allclose(d.kmin, 0.5, rtol=0.05)
     si, cv = d.shape_measures(2.0)
     assert si == pytest.approx([1.0] * 3, abs=0.02) and cv == pytest.approx([np.arcsinh(1.0)] * 3, rel=0.05)
@@ -138,24 +139,24 @@ def test_group_finds_the_objects(mixture):
 
 def _descriptor(thickness, rng, patches=None):
     th = thickness * np.exp(rng.normal(0, 0.01, 3))
-    return G.Descriptor("x", np.full(3, 1.0), np.full(3, 0.5), np.sort(th), 1.0, 5.0, 0.01, 0.2,
+    return D.Descriptor("x", np.full(3, 1.0), np.full(3, 0.5), np.sort(th), 1.0, 5.0, 0.01, 0.2,
                         1.0 * np.exp(rng.normal(0, 0.01)), None, None, patches)
 
 
 def test_interval_gaps_are_zero_where_quartiles_overlap():
     rng = np.random.default_rng(2)
     a, b, c = (_descriptor(t, rng) for t in (0.02, 0.02, 0.02))
-    a = G.Descriptor(**{**a.__dict__, "kmax": np.array([1.0, 1.5, 2.0])})
-    b = G.Descriptor(**{**b.__dict__, "kmax": np.array([1.8, 2.5, 3.0])})
-    c = G.Descriptor(**{**c.__dict__, "kmax": np.array([4.0, 4.1, 4.2])})
-    gaps = G.interval_gaps([a, b, c], 1.0)[:, :, G.GAP_NAMES.index("kmax")]
+    a = D.Descriptor(**{**a.__dict__, "kmax": np.array([1.0, 1.5, 2.0])})
+    b = D.Descriptor(**{**b.__dict__, "kmax": np.array([1.8, 2.5, 3.0])})
+    c = D.Descriptor(**{**c.__dict__, "kmax": np.array([4.0, 4.1, 4.2])})
+    gaps = G.interval_gaps([a, b, c], 1.0)[:, :, D.GAP_NAMES.index("kmax")]
     assert gaps[0, 1] == 0.0  # [asinh 1, asinh 2] and [asinh 1.8, asinh 3] overlap
     assert gaps[0, 2] == pytest.approx(np.arcsinh(4.0) - np.arcsinh(2.0))
     assert gaps[1, 2] == gaps[2, 1] == pytest.approx(np.arcsinh(4.0) - np.arcsinh(3.0))
 
 
 def test_shipped_pair_model_matches_its_inputs():
-    assert len(G.FEATURE_SCALES) == len(G.FEATURE_NAMES)
+    assert len(G.FEATURE_SCALES) == len(D.FEATURE_NAMES)
     assert len(G.PAIR_WEIGHTS) == G.N_PAIR_INPUTS + 1
 
 
@@ -174,13 +175,13 @@ def test_pair_model_fit_recovers_a_separating_rule():
 
     heaps = [heap(4, 5), heap(3, 6)]
     scales = G.fit_feature_scales(heaps)
-    assert scales.shape == (len(G.FEATURE_NAMES),)
+    assert scales.shape == (len(D.FEATURE_NAMES),)
     assert scales[1] == pytest.approx(0.01, rel=0.5)  # the log-thickness jitter of one object
     w = G.fit_pair_model(heaps, scales)
     # thickness enters as the median/quartile z (per knot block) and the quartile-interval gap
-    k, blocks = len(G.FEATURE_NAMES) + len(G.GAP_NAMES), 1 + len(G.Z_KNOTS)
+    k, blocks = len(D.FEATURE_NAMES) + len(D.GAP_NAMES), 1 + len(G.Z_KNOTS)
     thick = [b * k + i for b in range(blocks)
-             for i in (0, 1, 2, len(G.FEATURE_NAMES) + G.GAP_NAMES.index("log_thickness"))]
+             for i in (0, 1, 2, len(D.FEATURE_NAMES) + D.GAP_NAMES.index("log_thickness"))]
     assert w[thick].sum() < -0.5 and w[-1] > 0
     d, labels = heap(3, 5)
     p = G.same_object_probability(G.pair_features(d, scales), w)
@@ -206,12 +207,12 @@ def test_fracture_relief_scales_with_the_fragment():
     """The relief spectrum is a length: a fragment scaled by 2 has twice the relief at twice the radius."""
     r = synth.generate("slab", pieces=2, seed=4, faces=1500, progress=False)
     frag = r.fragments[0]
-    d1 = G.describe(frag)
-    d2 = G.describe(_scaled([frag], 2.0, "big_")[0])
+    d1 = D.describe(frag)
+    d2 = D.describe(_scaled([frag], 2.0, "big_")[0])
     radius = 0.1 * d1.size
-    assert np.isfinite(G.spectrum_at(d1, radius))
-    assert G.spectrum_at(d2, 2 * radius) == pytest.approx(2 * G.spectrum_at(d1, radius), rel=1e-6)
-    assert np.isnan(G.spectrum_at(d1, 10 * d1.size))  # beyond what was measured
+    assert np.isfinite(D.spectrum_at(d1, radius))
+    assert D.spectrum_at(d2, 2 * radius) == pytest.approx(2 * D.spectrum_at(d1, radius), rel=1e-6)
+    assert np.isnan(D.spectrum_at(d1, 10 * d1.size))  # beyond what was measured
 
 
 def test_patch_match_finds_the_other_side_of_a_cut():
@@ -233,7 +234,7 @@ def test_group_one_object_stays_one_group():
 
 def test_group_cli(tmp_path, mixture):
     from relicgpu.cli import main
-    from relicgpu.io import write_mesh
+    from relicgpu.io.files import write_mesh
 
     frags, labels = mixture
     src = tmp_path / "heap"
@@ -257,18 +258,18 @@ def test_labels_csv_faults(tmp_path):
     p = tmp_path / "labels.csv"
     p.write_text("file,label\na.ply,pot\nb.ply\n")
     with pytest.raises(FragmentError, match="line 3"):
-        G.read_labels_csv(p)
+        C.read_labels_csv(p)
     with pytest.raises(FragmentError, match="no such file"):
-        G.read_labels_csv(tmp_path / "none.csv")
+        C.read_labels_csv(tmp_path / "none.csv")
     p.write_text("file,label\nsub/a.ply, pot\n")
-    files, labels = G.read_labels_csv(p)
+    files, labels = C.read_labels_csv(p)
     assert files == [tmp_path / "sub" / "a.ply"] and labels == ["pot"]
 
 
 def test_train_classifier_cli(tmp_path, mixture):
     pytest.importorskip("torch")
     from relicgpu.cli import main
-    from relicgpu.io import write_mesh
+    from relicgpu.io.files import write_mesh
 
     frags, labels = mixture
     rows = ["file,label"]
@@ -278,7 +279,7 @@ def test_train_classifier_cli(tmp_path, mixture):
     (tmp_path / "labels.csv").write_text("\n".join(rows) + "\n")
     out = tmp_path / "clf.pt"
     assert main(["train-classifier", str(tmp_path / "labels.csv"), "-o", str(out), "--epochs", "40", "--quiet"]) == 0
-    clf = G.Classifier.load(out)
+    clf = C.Classifier.load(out)
     pred, prob = clf.predict(frags)
     assert prob.shape == (len(frags), 3)
     assert np.mean([p == f"object{l}" for p, l in zip(pred, labels)]) >= 0.9  # it learned its training set
@@ -298,7 +299,7 @@ def test_assemble_grouped_writes_objects(tmp_path):
         for f in _scaled(r.fragments, scale, f"o{k}_"):
             frags.append(f)
             obj[f.name] = k
-    grouping, results = G.assemble_grouped(frags, tmp_path / "out", progress=False)
+    grouping, results = assemble_grouped(frags, tmp_path / "out", progress=False)
     assert len(results) == 2
     doc = json.loads((tmp_path / "out" / "assembly.json").read_text())
     got = {e["name"]: e["object"] for e in doc["fragments"]}

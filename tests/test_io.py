@@ -6,7 +6,8 @@ import pytest
 import trimesh
 
 from relicgpu import FragmentError, load_fragment
-from relicgpu.io import atomic_write_bytes, fragment_from_arrays
+from relicgpu.io.files import atomic_write_bytes
+from relicgpu.io.fragment import fragment_from_arrays
 
 
 def _box(**kw):
@@ -122,8 +123,8 @@ def test_degenerate_faces_do_not_depend_on_units_or_origin():
 def test_unique_rows_on_spans_that_overflow_int64():
     # rows spanning more than 2**63 (the bit patterns of floats, as is_closed welds positions) must
     # not overflow into the one-key path: a box's 8 distinct corners were taken for 2
-    from relicgpu.io import unique_rows
-    from relicgpu.outputs import is_closed
+    from relicgpu.io.fragment import unique_rows
+    from relicgpu.heap.outputs import is_closed
 
     box = trimesh.creation.box()
     first, inverse, counts = unique_rows(np.ascontiguousarray(box.vertices).view(np.int64))

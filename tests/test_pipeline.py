@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from relicgpu import match_pair, synth
-from relicgpu.icp import rotation_angle_deg
+from relicgpu.pair.icp import rotation_angle_deg
 
 
 def _pose_error(result, a, b, truth):
@@ -86,7 +86,7 @@ def test_every_backend_gives_the_same_transform(slab_pair, device_backend):
 
 
 def test_fracture_sample_is_weighted_by_the_fracture_likelihood():
-    from relicgpu.pipeline import prepare
+    from relicgpu.pair.prepare import prepare
     r = synth.generate("slab", pieces=2, seed=1, faces=2000, noise=0.0005)
     p = prepare(r.fragments[0], backend="numpy")
     w = p.sample.fracture_weight
@@ -103,8 +103,8 @@ def test_fracture_sample_is_weighted_by_the_fracture_likelihood():
 def test_a_fragment_without_fracture_is_sampled_whole_with_uniform_weights():
     """Segmentation finds no fracture on a smooth sphere: the fracture sample is the whole surface."""
     import trimesh
-    from relicgpu.io import Fragment
-    from relicgpu.pipeline import prepare
+    from relicgpu.io.fragment import Fragment
+    from relicgpu.pair.prepare import prepare
     sphere = trimesh.creation.icosphere(subdivisions=4)
     frag = Fragment("sphere", np.asarray(sphere.vertices, np.float64), np.asarray(sphere.faces, np.int64))
     p = prepare(frag, backend="numpy")
@@ -120,8 +120,9 @@ def test_a_wrong_fit_of_a_thin_wall_is_refused_for_not_facing():
     is accepted at a wrong pose; with them it is refused, and no wrong pose is accepted."""
     from relicgpu.synth import corpus
     from relicgpu.params import Params
-    from relicgpu.pipeline import pair_scale, prepare
-    from relicgpu.verify import facing_share, verify
+    from relicgpu.pair.pipeline import pair_scale
+    from relicgpu.pair.prepare import prepare
+    from relicgpu.pair.verify import facing_share, verify
 
     r = corpus.generate("vessel-coarse", pieces=2, seed=0, faces=2000)
     a, b = r.fragments
@@ -153,7 +154,8 @@ def test_a_pair_the_first_segmentation_misreads_is_matched_on_the_second():
     the second segmentation (Params.second_segmentation, "hybrid"), the true pose is accepted."""
     from relicgpu.synth import corpus
     from relicgpu.params import Params
-    from relicgpu.pipeline import pair_scale, prepare, with_fragment
+    from relicgpu.pair.pipeline import pair_scale
+    from relicgpu.pair.prepare import prepare, with_fragment
 
     r = corpus.generate("vessel-clean", pieces=2, seed=0, faces=2000)
     a, b = r.fragments

@@ -1,4 +1,4 @@
-"""relicgpu.pointcloud: point-cloud readers and triangulation into closed meshes."""
+"""relicgpu.cloud: point-cloud readers and triangulation into closed meshes."""
 from __future__ import annotations
 
 import importlib.util
@@ -8,8 +8,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from relicgpu import pointcloud as pc
-from relicgpu.io import FragmentError, count_bodies, is_watertight, load_fragment
+from relicgpu.cloud import triangulate as pc
+from relicgpu.cloud.points import choose_voxel, voxel_thin
+from relicgpu.io.clouds import read_point_cloud
+from relicgpu.io.fragment import FragmentError, count_bodies, is_watertight
+from relicgpu.io.load import load_fragment
 
 
 # --- helpers -----------------------------------------------------------------
@@ -69,16 +72,16 @@ def test_xyz_reader_with_comments_commas_and_normals(tmp_path):
     pts, nrm = sphere_points(50)
     p3 = tmp_path / "a.xyz"
     p3.write_text("# scanner export\n\n" + "\n".join(f"{x} {y} {z}" for x, y, z in pts) + "\n")
-    cloud = pc.read_point_cloud(p3)
+    cloud = read_point_cloud(p3)
     assert np.allclose(cloud.points, pts) and cloud.normals is None
     p6 = tmp_path / "b.asc"
     p6.write_text("\n".join(",".join(f"{c:.17g}" for c in row) for row in np.hstack([pts, nrm])) + "\n")
-    cloud = pc.read_point_cloud(p6)
+    cloud = read_point_cloud(p6)
     assert np.allclose(cloud.points, pts) and np.allclose(cloud.normals, nrm)
     # six columns that are not unit normals (colours) are accepted and ignored, with a note
     p7 = tmp_path / "c.txt"
     p7.write_text("\n".join(f"{x} {y} {z} 200 10 30" for x, y, z in pts))
-    cloud = pc.read_point_cloud(p7)
+    cloud = read_point_cloud(p7)
     assert cloud.normals is None and any("not unit normals" in n for n in cloud.notes)
 
 
@@ -112,7 +115,7 @@ def test_pcd_ascii_and_binary_with_normals_and_other_fields(tmp_path):
     for mode in ("ascii", "binary"):
         path = tmp_path / f"{mode}.pcd"
         write_pcd(path, fields, sizes, types, rows, mode, counts)
-        cloud = pc.read_point_cloud(path)
+        cloud = read_point_cloud(path)
         assert np.allclose(cloud.points, pts, atol=1e-6), mode
         assert np.allclose(cloud.normals, nrm, atol=1e-6), mode
 
@@ -123,7 +126,7 @@ def test_pcd_organised_cloud_drops_nan_pixels(tmp_path):
     rows[::7] = np.nan
     path = tmp_path / "grid.pcd"
     write_pcd(path, ["x", "y", "z"], [4, 4, 4], ["F", "F", "F"], rows, "binary", width=10, height=6)
-    cloud = pc.read_point_cloud(path)
+    cloud = read_point_cloud(path)
     assert len(cloud.points) == 60 - len(rows[::7])
     assert any("dropped 9 NaN points" in n for n in cloud.notes)
 
@@ -140,7 +143,7 @@ def test_ply_point_clouds_ascii_and_binary_go_through_load_fragment(tmp_path):
     (tmp_path / "c.ply").write_bytes(header.format(fmt="binary_big_endian", n=len(pts)).encode()
                                      + table.astype(">f4").tobytes())
     for name in ("a", "b", "c"):
-        cloud = pc.read_point_cloud(tmp_path / f"{name}.ply")
+        cloud = read_point_cloud(tmp_path / f"{name}.ply")
         assert np.allclose(cloud.points, pts, atol=1e-6) and np.allclose(cloud.normals, nrm, atol=1e-6)
     frag = load_fragment(tmp_path / "b.ply")
     assert frag.name == "b" and len(frag.faces) > 0
@@ -152,8 +155,8 @@ def test_npy_points_and_points_with_normals(tmp_path):
     pts, nrm = sphere_points(30)
     np.save(tmp_path / "a.npy", pts)
     np.save(tmp_path / "b.npy", np.hstack([pts, nrm]).astype(np.float32))
-    assert np.allclose(pc.read_point_cloud(tmp_path / "a.npy").points, pts)
-    cloud = pc.read_point_cloud(tmp_path / "b.npy")
+    assert np.allclose(read_point_cloud(tmp_path / "a.npy").points, pts)
+    cloud = read_point_cloud(tmp_path / "b.npy")
     assert np.allclose(cloud.points, pts, atol=1e-6) and np.allclose(cloud.normals, nrm, atol=1e-6)
 
 
@@ -324,8 +327,8 @@ def test_a_small_hole_in_the_scan_is_closed_over_with_a_note():
 
 def test_thinning_keeps_large_clouds_under_max_points():
     pts, _ = sphere_points(60000, noise=0.0005)
-    voxel = pc.choose_voxel(pts, 20000)
-    thin = pc.voxel_thin(pts, voxel)
+    voxel = choose_voxel(pts, 20000)
+    thin = voxel_thin(pts, voxel)
     assert 0.8 * 20000 < len(thin) <= 20000
     res = pc.triangulate(pts, max_points=20000)
     assert res.n_input == 60000 and res.n_meshed == len(thin) and res.voxel == voxel
@@ -377,8 +380,8 @@ def _have(module: str, attr: str | None = None) -> bool:
 
 
 needs_synth = pytest.mark.skipif(not _have("relicgpu.synth", "generate"), reason="relicgpu.synth is not installed yet")
-needs_pipeline = pytest.mark.skipif(not _have("relicgpu.pipeline", "match_pair"),
-                                    reason="relicgpu.pipeline.match_pair is not installed yet")
+needs_pipeline = pytest.mark.skipif(not _have("relicgpu.pair.pipeline", "match_pair"),
+                                    reason="relicgpu.pair.pipeline.match_pair is not installed yet")
 
 
 _remeshed: dict = {}
@@ -395,7 +398,7 @@ def _remeshed_pair(shape, seed, n_points=40000, max_points=pc.MATCH_POINTS):
 
 def _make_remeshed_pair(shape, seed, n_points, max_points):
     from relicgpu import synth
-    from relicgpu.io import Fragment
+    from relicgpu.io.fragment import Fragment
 
     result = synth.generate(shape, pieces=2, seed=seed, progress=False)
     remeshed = []
@@ -412,7 +415,7 @@ def _angle_deg(r):
 
 def _check_issue(shape, seed):
     """The issue's check: within 1% of size (Hausdorff) of the source, and matched at the true pose."""
-    from relicgpu.pipeline import match_pair
+    from relicgpu.pair.pipeline import match_pair
 
     result, (a, b) = _remeshed_pair(shape, seed)
     for frag, again in zip(result.fragments, (a, b)):

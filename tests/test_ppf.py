@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from relicgpu.backends import get_backend
-from relicgpu.icp import apply, axis_rotation, batched_icp, rotation_angle_deg
-from relicgpu.ppf import pair_table, ppf_poses, smoothed_normals, vote_poses
+from relicgpu.pair.icp import apply, axis_rotation, batched_icp, rotation_angle_deg
+from relicgpu.pair.ppf import pair_table, ppf_poses, smoothed_normals, vote_poses
 
 
 def _rough_sheet(rng, n=900, size=1.0):

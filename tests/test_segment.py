@@ -5,8 +5,8 @@ import pytest
 from relicgpu import synth
 from relicgpu.backends import numpy as ref
 from relicgpu.params import Params
-from relicgpu.segment import mesh_topology, segment
-from relicgpu.segment_cues import CUE_NAMES, crease_regions, region_cues
+from relicgpu.pair.segment import mesh_topology, segment
+from relicgpu.pair.regions import CUE_NAMES, crease_regions, region_cues
 
 
 def _box_cut_by_plane():
@@ -238,7 +238,7 @@ def _rounded_tube(smooth_steps):
 def test_wall_ends_turn_across_the_walls_axis_and_lips_are_found_among_them():
     """On a thin wall the skins' normals lie along the wall's axis and the wall's ends (lips and
     cuts) turn across it; the lips are the long, curved, planar runs of those ends."""
-    from relicgpu.segment_cues import end_lips, wall_end_alignment
+    from relicgpu.pair.walls import end_lips, wall_end_alignment
     v, f, cut, lip = _rounded_tube(0)
     topo, normals, areas, _ = _mesh_basics(v, f)
     centers = v[f].mean(1)

@@ -5,12 +5,12 @@ import trimesh
 from hypothesis import given, settings, strategies as st
 
 from relicgpu.backends import numpy as ref
-from relicgpu.contour import region_boundary_loops, resample_closed
-from relicgpu.fusion import FusionModel, forward, fusion_inputs, hand_weighted_model, load_model, save_model
-from relicgpu.icp import apply, icp, ransac_poses, rotation_angle_deg
-from relicgpu.lcs import circular_lcs, lcs_backtrack, lcs_table
+from relicgpu.pair.contour import region_boundary_loops, resample_closed
+from relicgpu.pair.fusion import FusionModel, forward, fusion_inputs, hand_weighted_model, load_model, save_model
+from relicgpu.pair.icp import apply, icp, ransac_poses, rotation_angle_deg
+from relicgpu.pair.lcs import circular_lcs, lcs_backtrack, lcs_table
 from relicgpu.params import Params
-from relicgpu.segment import mesh_topology, segment
+from relicgpu.pair.segment import mesh_topology, segment
 
 
 def _box_cut_by_plane():

@@ -12,7 +12,8 @@ import pytest
 
 from relicgpu import synth
 from relicgpu.synth.scanning import _vertex_normals
-from relicgpu.io import FragmentError, count_bodies, is_watertight, load_directory, load_fragment
+from relicgpu.io.fragment import count_bodies, FragmentError, is_watertight
+from relicgpu.io.load import load_directory, load_fragment
 
 FACES = 1500
 SHAPES = ["vase", "torso", "slab"]

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from relicgpu import match_pair, synth
-from relicgpu.assembly import assemble
-from relicgpu.icp import rotation_angle_deg
-from relicgpu.io import Fragment
-from relicgpu.pointcloud import even_subsample
+from relicgpu.heap.assembly import assemble
+from relicgpu.pair.icp import rotation_angle_deg
+from relicgpu.io.fragment import Fragment
+from relicgpu.cloud.points import even_subsample
 
 # (factor, offset): unit size; millimetres with the scans hundreds of millimetres from the origin;
 # a thousandth of the size
@@ -90,7 +90,7 @@ def _cloud_pair(shape, seed, with_normals, n=2500):
     size) and the transform carrying b onto a. Also the true fracture label of every point."""
     import trimesh
 
-    from relicgpu.pointcloud import cloud_fragment
+    from relicgpu.cloud.points import cloud_fragment
 
     r = synth.generate(shape, pieces=2, seed=seed, faces=4000, noise=0.0005, progress=False)
     frags, labels = [], []
@@ -125,7 +125,7 @@ def _assert_right(result, b, truth):
 def test_estimated_normals_face_outward_and_fracture_points_rank_rough():
     from scipy.stats import rankdata
 
-    from relicgpu.pointcloud import estimate_normals, fracture_likelihood
+    from relicgpu.cloud.points import estimate_normals, fracture_likelihood
 
     # a board's broad faces meet its rim at right angles; a vase's thin wall shows both faces
     for shape in ("torso", "slab", "vase"):
@@ -138,7 +138,7 @@ def test_estimated_normals_face_outward_and_fracture_points_rank_rough():
 
 
 def test_estimated_normals_of_a_thin_shell_face_out_on_both_faces():
-    from relicgpu.pointcloud import estimate_normals
+    from relicgpu.cloud.points import estimate_normals
 
     # a hemispherical sherd whose wall (3% of its radius) is about one point spacing thick: its
     # inner face must not be seen through the outer one, nor take its side over links across the
@@ -170,8 +170,8 @@ def test_sparse_clouds_are_matched_on_their_points(shape, seed, with_normals):
 
 def test_cloud_interpenetration_counts_only_near_the_other_surface():
     from relicgpu.backends import resolve
-    from relicgpu.cloudmatch import MAX_PENETRATION, PENETRATION_REACH, cloud_penetration
-    from relicgpu.verify import SurfaceSample
+    from relicgpu.pair.cloudmatch import MAX_PENETRATION, PENETRATION_REACH, cloud_penetration
+    from relicgpu.pair.verify import SurfaceSample
 
     be = resolve("numpy")
     g = np.stack(np.meshgrid(np.linspace(0, 1, 21), np.linspace(0, 1, 21)), -1).reshape(-1, 2)
@@ -201,8 +201,8 @@ def test_open_meshes_with_holes_in_the_skin_are_matched(shape, seed):
 
 
 def test_a_cloud_that_does_not_close_loads_as_points(tmp_path):
-    from relicgpu.io import load_fragment
-    from relicgpu.pointcloud import CloudFragment
+    from relicgpu.io.load import load_fragment
+    from relicgpu.cloud.points import CloudFragment
 
     d = np.c_[np.random.default_rng(0).uniform(size=(2500, 2)), np.zeros(2500)]  # an open, flat sheet
     np.savetxt(tmp_path / "shell.xyz", d)
@@ -214,8 +214,8 @@ def test_a_cloud_that_does_not_close_loads_as_points(tmp_path):
 
 
 def test_crease_regions_split_a_cloud_at_its_creases_with_and_without_normals():
-    from relicgpu.cloudmatch import crease_regions
-    from relicgpu.pointcloud import estimate_normals
+    from relicgpu.pair.cloudmatch import crease_regions
+    from relicgpu.cloud.points import estimate_normals
 
     # a box's six faces (sides 1, 0.8, 0.6): six smooth regions between its creases
     rng = np.random.default_rng(0)
@@ -245,7 +245,7 @@ def test_a_clean_smooth_break_is_matched_on_its_crease_regions():
     import trimesh
 
     from relicgpu.synth import corpus
-    from relicgpu.pointcloud import cloud_fragment
+    from relicgpu.cloud.points import cloud_fragment
 
     r = corpus.generate("smooth-clean", pieces=2, seed=0, faces=4000)
     frags = []

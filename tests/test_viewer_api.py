@@ -26,7 +26,7 @@ import pytest
 pytest.importorskip("flask")
 import trimesh  # noqa: E402
 
-from relicgpu.io import load_fragment  # noqa: E402
+from relicgpu.io.load import load_fragment  # noqa: E402
 from relicgpu.viewer.app import create_app, make_server, serve_in_thread  # noqa: E402
 from relicgpu.viewer.workspace import Workspace  # noqa: E402
 
@@ -599,7 +599,7 @@ def test_waitress_streams_events_while_the_job_runs(box):
 def test_cli_defaults_and_loud_warning(box, capsys):
     import argparse
 
-    from relicgpu.cli import CliError
+    from relicgpu.errors import CliError
     from relicgpu.viewer.app import cli_add_arguments, cli_main
 
     p = argparse.ArgumentParser()
@@ -630,8 +630,8 @@ def test_viewer_never_uses_the_flask_debugger(box):
 
 # --- against the real pipeline, once it is installed -------------------------------------------
 
-needs_pipeline = pytest.mark.skipif(importlib.util.find_spec("relicgpu.pipeline") is None,
-                                    reason="relicgpu.pipeline (prepare, match_pair) is not installed yet")
+needs_pipeline = pytest.mark.skipif(importlib.util.find_spec("relicgpu.pair.pipeline") is None,
+                                    reason="relicgpu.pair.pipeline (prepare, match_pair) is not installed yet")
 
 
 @needs_pipeline

@@ -70,7 +70,7 @@ def served(tmp_path_factory):
                             "transform": (np.linalg.inv(other["poses"][names[0]]) @ other["poses"][names[1]]).tolist(),
                             "score": 0.8, "rmse": 0.001, "overlap": 0.7, "used": True}],
                "backend": "numpy", "engine": "local", "timings": {}}
-        from relicgpu.io import atomic_write_json
+        from relicgpu.io.files import atomic_write_json
         atomic_write_json(out_dir / "assembly.json", doc)
         return {"fragments": 3, "placed": 3, "groups": 1}
 
@@ -274,8 +274,8 @@ def test_demo_case_end_to_end(browser, tmp_path, monkeypatch):
     """`relicgpu demo`'s case (relicgpu.synth + relicgpu.assemble, the real pipeline) in the browser."""
     import importlib.util
 
-    if importlib.util.find_spec("relicgpu.synth") is None or importlib.util.find_spec("relicgpu.assembly") is None:
-        pytest.skip("relicgpu.synth and relicgpu.assembly are not installed yet")
+    if importlib.util.find_spec("relicgpu.synth") is None or importlib.util.find_spec("relicgpu.heap.assembly") is None:
+        pytest.skip("relicgpu.synth and relicgpu.heap.assembly are not installed yet")
     from relicgpu.demo import make_case
     from relicgpu.viewer.app import create_app, serve_in_thread
 

@@ -122,7 +122,6 @@ compositing, image files), `command` (`relicgpu mosaic`).
 """
 from __future__ import annotations
 
-from .command import cli_add_arguments, cli_main
 from .entropy import EntropyMatch, cross_blocks, match_entropy, quadratic_entropy, sequential_costs
 from .fcm import (FcmResult, FeatureRegion, fcm_memberships, find_feature_region, find_feature_regions, fuzzy_cmeans,
                   isotropy, template_width)
@@ -132,7 +131,7 @@ from .preprocess import (Prepared, block_entropy, edge_map, led, local_normalise
 from .register import Placement, overlap_correlation, refine_placement, register_pair
 from .stitching import composite, load_image, save_image, stitch
 
-__all__ = ["cli_add_arguments", "cli_main", "EntropyMatch", "cross_blocks", "match_entropy", "quadratic_entropy",
+__all__ = ["EntropyMatch", "cross_blocks", "match_entropy", "quadratic_entropy",
            "sequential_costs", "FcmResult", "FeatureRegion", "fcm_memberships", "find_feature_region",
            "find_feature_regions", "fuzzy_cmeans", "isotropy", "template_width", "Mosaic", "MosaicError",
            "MosaicParams", "PairMatch", "Prepared", "block_entropy", "edge_map", "led", "local_normalise", "median3",

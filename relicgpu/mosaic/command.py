@@ -5,8 +5,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..backends import BackendError, resolve
-from ..cli import CliError
-from ..io import ensure_not_input
+from ..errors import CliError
+from ..io.files import ensure_not_input
 from .params import MosaicParams
 from .stitching import _FORMATS, save_image, stitch
 

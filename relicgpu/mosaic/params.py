@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..io import FragmentError
+from ..io.fragment import FragmentError
 
 
 class MosaicError(FragmentError):

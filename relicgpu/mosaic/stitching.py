@@ -9,7 +9,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..backends import resolve
-from ..io import atomic_write_bytes
+from ..io.files import atomic_write_bytes
 from .params import Mosaic, MosaicError, MosaicParams
 from .register import register_pair
 

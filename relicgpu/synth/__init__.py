@@ -39,11 +39,10 @@ independent generator's families, the realdata sets).
 """
 from __future__ import annotations
 
-from .command import cli_add_arguments, cli_main
 from .generator import generate
 from .shapes import SHAPES, make_shape
 from .truth import (CONTACT_DISTANCE, CONTACT_FRACTION, TRUTH_VERSION, SynthResult, load_labels, read_truth, write,
                     write_many)
 
 __all__ = ["SHAPES", "TRUTH_VERSION", "CONTACT_DISTANCE", "CONTACT_FRACTION", "SynthResult", "generate", "make_shape",
-           "write", "write_many", "read_truth", "load_labels", "cli_add_arguments", "cli_main"]
+           "write", "write_many", "read_truth", "load_labels"]

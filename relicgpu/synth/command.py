@@ -5,8 +5,8 @@ import sys
 import time
 from pathlib import Path
 
-from ..cli import CliError
-from ..io import FragmentError
+from ..errors import CliError
+from ..io.fragment import FragmentError
 from .generator import generate
 from .truth import write_many
 

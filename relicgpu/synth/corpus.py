@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import Fragment
+from ..io.fragment import Fragment
 from .scanning import _invert_rigid, _random_placement
 from .truth import SynthResult, _point_triangle_distance, _touching_pairs
 

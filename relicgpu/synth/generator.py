@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import Fragment
+from ..io.fragment import Fragment
 from .fracture import FBM_WAVELENGTH, _fracture, _manifold_arrays
 from .scanning import (_clean_slivers, _closed_mesh_fault, _invert_rigid, _random_placement,
                        _separate_shared_vertices, _vertex_normals)

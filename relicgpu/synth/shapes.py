@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import FragmentError, is_watertight, load_fragment
+from ..io.fragment import FragmentError, is_watertight
+from ..io.load import load_fragment
 
 SHAPES = ("vase", "torso", "slab")
 

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import Fragment, FragmentError, atomic_write_bytes, atomic_write_json, write_mesh
+from ..io.files import atomic_write_bytes, atomic_write_json, write_mesh
+from ..io.fragment import Fragment, FragmentError
 
 TRUTH_VERSION = 1
 # Two pieces touch when more than CONTACT_FRACTION of the surface of one lies

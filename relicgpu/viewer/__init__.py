@@ -5,12 +5,6 @@ state: what the routes share; serialize: the JSON; hooks: the pipeline stages;
 workspace: cases on disk; jobs: the background assembly."""
 from __future__ import annotations
 
+from .app import create_app, make_server, serve_in_thread
+
 __all__ = ["create_app", "make_server", "serve_in_thread"]
-
-
-def __getattr__(name):
-    # Flask loads only when the viewer is used.
-    if name in __all__:
-        from . import app
-        return getattr(app, name)
-    raise AttributeError(f"module 'relicgpu.viewer' has no attribute {name!r}")

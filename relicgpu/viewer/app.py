@@ -38,6 +38,7 @@ from pathlib import Path
 from flask import Flask, Response, jsonify, request
 from werkzeug.exceptions import HTTPException
 
+from ..errors import CliError
 from .hooks import default_match_pair, default_prepare, pipeline_available, run_assembly
 from .routes import bp
 from .state import ApiError, ViewerState
@@ -109,9 +110,9 @@ def create_app(workspace, *, prepare=None, match_pair=None, assemble=None, trust
         "assemble": assemble or run_assembly,
     }
     capabilities = {
-        "prepare": prepare is not None or pipeline_available("relicgpu.pipeline"),
-        "match": match_pair is not None or pipeline_available("relicgpu.pipeline"),
-        "assemble": assemble is not None or pipeline_available("relicgpu.assembly"),
+        "prepare": prepare is not None or pipeline_available("relicgpu.pair.pipeline"),
+        "match": match_pair is not None or pipeline_available("relicgpu.pair.pipeline"),
+        "assemble": assemble is not None or pipeline_available("relicgpu.heap.assembly"),
     }
     state = ViewerState(ws, viewer_dir(), hooks, capabilities)
     hosts = {"trusted": set(LOOPBACK_NAMES) if trusted_hosts is None else set(trusted_hosts)}
@@ -223,7 +224,6 @@ def server_url(server, host: str) -> str:
 
 def bind(app: Flask, host: str, port: int):
     """make_server, with a port that cannot be bound raised as a one-line CliError."""
-    from ..cli import CliError
     try:
         return make_server(app, host, port)
     except OSError as exc:
@@ -241,7 +241,6 @@ def cli_add_arguments(parser) -> None:
 
 def cli_main(args) -> int:
     """`relicgpu view`: serve a workspace until Ctrl+C; returns the exit status."""
-    from ..cli import CliError
     try:
         ws = Workspace(args.workspace)
     except WorkspaceError as exc:

@@ -5,18 +5,18 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
+import relicgpu
+
 from .serialize import timings_to_json
 
 
 def default_prepare(fragment, scale):
     """relicgpu.prepare(fragment, scale=scale)."""
-    import relicgpu
     return relicgpu.prepare(fragment, scale=scale)
 
 
 def default_match_pair(prepared_a, prepared_b, heads, scale):
     """relicgpu.match_pair of two prepared fragments, at their own scale."""
-    import relicgpu
     # The same scale as the prepared fragments: match_pair then reuses them rather than preparing
     # again at the pair's own scale, so head indices picked on the shown contours mean the same points.
     return relicgpu.match_pair(prepared_a, prepared_b, heads=heads, scale=scale)
@@ -42,7 +42,6 @@ def run_assembly(fragments_dir: Path, out_dir: Path, report, progress=None) -> d
     dict
         fragments, placed, groups, accepted, used (those assemble reported) and timings.
     """
-    import relicgpu
 
     report(stage="assembling", message=f"assembling {fragments_dir.parent.name}")
     result = relicgpu.assemble(fragments_dir, out_dir=out_dir,
@@ -77,7 +76,7 @@ def progress_callback(report):
 
 
 def pipeline_available(module: str) -> bool:
-    """Whether a module (e.g. "relicgpu.pipeline") can be imported, without importing it."""
+    """Whether a module (e.g. "relicgpu.pair.pipeline") can be imported, without importing it."""
     try:
         return importlib.util.find_spec(module) is not None
     except (ImportError, ValueError):

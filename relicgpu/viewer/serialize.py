@@ -69,7 +69,7 @@ def prepared_to_json(name: str, prepared) -> dict:
     ----------
     name : str
         The fragment's name in its case.
-    prepared : relicgpu.pipeline.Prepared
+    prepared : relicgpu.pair.pipeline.Prepared
         Its `fragment`, `face_region` (n_faces,), `region_is_fracture` (n_regions,)
         and `contours` (each with `region`, `points` (m, 3), `feature_points` (k,)).
 
@@ -112,7 +112,7 @@ def match_to_json(a: str, b: str, heads, m) -> dict:
         The two fragments' names.
     heads : sequence of 4 int or None
         The head nodes asked for, [contour_a, point_a, contour_b, point_b].
-    m : relicgpu.pipeline.PairMatch
+    m : relicgpu.pair.pipeline.PairMatch
         The match: `transform` (4, 4), `correspondences` (k, 2), `accepted`, `score`,
         `rmse`, `overlap`, `contour_a`, `contour_b`, `reason`, `timings`.
 

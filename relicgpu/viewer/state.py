@@ -11,9 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import FragmentError, load_fragments
+from ..io.fragment import FragmentError
+from ..io.load import load_fragments
 from .jobs import JobRunner
-from .workspace import Workspace, split_entries
+from .workspace import split_entries, Workspace
 
 CACHE_FRAGMENTS = 128  # loaded meshes, and prepared fragments, kept in memory
 

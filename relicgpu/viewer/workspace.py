@@ -18,7 +18,9 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..io import MESH_SUFFIXES, POINT_SUFFIXES, fragment_ids
+from ..io.clouds import POINT_SUFFIXES
+from ..io.load import fragment_ids
+from ..io.meshes import MESH_SUFFIXES
 
 FRAGMENT_SUFFIXES = frozenset(MESH_SUFFIXES | POINT_SUFFIXES)
 ASSEMBLY_FILES = ("assembly.json", "assembly.glb", "merged.stl")
@@ -89,7 +91,7 @@ class AssemblyView:
 
 @dataclass(frozen=True)
 class ObjectGroups:
-    """Which object group each fragment was sorted into (relicgpu.grouping), and from where."""
+    """Which object group each fragment was sorted into (relicgpu.heap.grouping), and from where."""
     groups: dict  # name -> int or None (not in the file)
     source: str  # the file, relative to the case
     method: str | None = None

@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .io import is_cloud
-from .params import Params
-from .pointcloud import estimate_normals, even_subsample, fracture_likelihood, local_pca
+from .icp import apply
+from ..io.fragment import is_cloud
+from ..params import Params
+from ..cloud.points import estimate_normals, even_subsample, fracture_likelihood, local_pca
 from .ppf import smoothed_normals
 from .verify import SurfaceSample, Verification, verify
 
@@ -245,8 +246,6 @@ def cloud_penetration(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray,
     the contact zone (farther than 2 * contact from the other's fracture sample), lying deeper
     than `depth` behind the nearest surface point of the other and within PENETRATION_REACH
     depths of it (lengths absolute; index_of: nearest-neighbour index of a sample's points)."""
-    from .icp import apply
-
     def one_way(points, other):
         if len(points) == 0:
             return 0.0

@@ -24,10 +24,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix, identity
-from scipy.sparse.csgraph import connected_components
 
-from .params import Params
+from ..params import Params
+from .segment_cues import cue_labels
+from .topology import Topology, components, merge_small, mesh_topology, otsu_split, ring_average, weighted_quantile
 
 
 # "hybrid" (see _hybrid_labels): chosen on synth and corpus rough-*/smooth-*, voronoi-*, vessel-* and
@@ -43,31 +43,6 @@ HYBRID_OWN_RATIO = 0.25
 HYBRID_OWN_MIN_FACES = 20
 HYBRID_MIN_FACES = 1000  # meshes with fewer faces (coarse, CAD-like) use the crease regions alone: a
 # ring-averaged roughness there measures the facets' curvature, not the surface's roughness
-
-
-@dataclass(frozen=True)
-class Topology:
-    """Edges of a triangle mesh shared by exactly two faces, and its open boundary."""
-    edge_faces: np.ndarray  # (E,2) int32, the two faces of each interior edge
-    edge_vertices: np.ndarray  # (E,2) int64, the vertices of that edge
-    boundary_edges: np.ndarray  # (B,2) int64, edges with one face
-
-
-def mesh_topology(faces: np.ndarray) -> Topology:
-    f = np.asarray(faces, np.int64)
-    nf = len(f)
-    half = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    face_of = np.tile(np.arange(nf), 3)
-    key = np.sort(half, axis=1)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    key, face_of = key[order], face_of[order]
-    same_as_next = np.all(key[1:] == key[:-1], axis=1)
-    starts = np.flatnonzero(np.concatenate([[True], ~same_as_next]))
-    counts = np.diff(np.concatenate([starts, [len(key)]]))
-    two = starts[counts == 2]
-    edge_faces = np.stack([face_of[two], face_of[two + 1]], axis=1).astype(np.int32)
-    boundary = key[starts[counts == 1]]
-    return Topology(edge_faces, key[two], boundary)
 
 
 @dataclass(frozen=True)
@@ -88,24 +63,6 @@ class Segmentation:
         return self.region_is_fracture[self.face_region]
 
 
-def ring_average(values: np.ndarray, weights: np.ndarray, edge_faces: np.ndarray, rings: int) -> np.ndarray:
-    """Weighted mean of per-face values over the faces within `rings` edge-steps.
-
-    The neighbourhood follows the surface, not space: across a thin wall the faces
-    of the other side are near in space but belong to another surface.
-    """
-    n = len(weights)
-    a, b = edge_faces[:, 0], edge_faces[:, 1]
-    reach = coo_matrix((np.ones(2 * len(a)), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(n, n)).tocsr()
-    reach = reach + identity(n, format="csr")
-    num = values * (weights[:, None] if values.ndim == 2 else weights)
-    den = weights.copy()
-    for _ in range(rings):
-        num, den = reach @ num, reach @ den
-    den = np.where(den > 0, den, 1)
-    return num / (den[:, None] if values.ndim == 2 else den)
-
-
 def face_roughness(normals: np.ndarray, areas: np.ndarray, edge_faces: np.ndarray, rings: int,
                    k: int = 1) -> np.ndarray:
     """Normal perturbation per face (degrees): the angle between a face's normal and the mean
@@ -120,13 +77,6 @@ def face_roughness(normals: np.ndarray, areas: np.ndarray, edge_faces: np.ndarra
     wide = unit(ring_average(normals, areas, edge_faces, 2 * k - 1))
     angle = np.degrees(np.arccos(np.clip(np.einsum("fd,fd->f", wide, near), -1, 1)))
     return ring_average(angle, areas, edge_faces, k * rings)
-
-
-def weighted_quantile(x: np.ndarray, w: np.ndarray, q):
-    """The w-weighted q-quantile(s) of x (N,), N >= 1 (q a number or an array of them)."""
-    order = np.argsort(x)
-    cum = np.cumsum(w[order])
-    return x[order][np.searchsorted(cum, np.asarray(q) * cum[-1])]
 
 
 # The smoothest SMOOTHEST_SHARE of a mesh's area reading rougher than NOISY_FLOOR times the roughness
@@ -172,20 +122,6 @@ def roughness_threshold(rough: np.ndarray, areas: np.ndarray, params: Params) ->
     return max(params.roughness_threshold_deg, float(np.exp(otsu_split(np.log(np.maximum(rough, 1e-3)), areas))))
 
 
-def otsu_split(x: np.ndarray, w: np.ndarray) -> float:
-    """Otsu's threshold of values x (N,) with weights w (N,): the x that splits them into the
-    two classes (<= and >) of most between-class variance."""
-    if len(x) < 2:
-        return float(x[0]) if len(x) else 0.0
-    order = np.argsort(x)
-    x, w = x[order], w[order]
-    w0 = np.cumsum(w)[:-1]
-    s0 = np.cumsum(w * x)[:-1]
-    w1 = w.sum() - w0
-    between = w0 * w1 * (s0 / np.maximum(w0, 1e-300) - ((w * x).sum() - s0) / np.maximum(w1, 1e-300)) ** 2
-    return float(x[np.argmax(between)])
-
-
 def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: float, backend) -> Segmentation:
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
@@ -203,7 +139,7 @@ def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: floa
     # Neighbouring fracture regions form one fracture patch (one set of contours).
     fracture = region_is_fracture[region]
     same = (region[e0] == region[e1]) | (fracture[e0] & fracture[e1])
-    patch = _components(len(f), topo.edge_faces[same])
+    patch = components(len(f), topo.edge_faces[same])
     patch_is_fracture = np.zeros(int(patch.max()) + 1, bool)
     patch_is_fracture[patch[fracture]] = True
     return Segmentation(patch, patch_is_fracture, region, rough, region_prob[region], angle, normals, areas, topo)
@@ -212,12 +148,10 @@ def segment(vertices: np.ndarray, faces: np.ndarray, params: Params, scale: floa
 def _labels(method: str, v, f, normals, areas, topo, angle, rough, params):
     """Regions (F,) int and their fracture likelihood (R,) by `Params.segmentation`'s method."""
     if method == "regions":
-        from .segment_cues import cue_labels  # segment_cues builds on this module
         return cue_labels(v, f, normals, areas, topo, angle, params)
     if method == "hybrid":
         if len(f) < HYBRID_MIN_FACES:  # coarse: no neighbourhoods to measure roughness on
             return _labels("regions", v, f, normals, areas, topo, angle, rough, params)
-        from .segment_cues import cue_labels
         *regions, ends, lips = cue_labels(v, f, normals, areas, topo, angle, params, details=True)
         if ends:  # a thin wall's ends, rounded by a rescan: the roughness vote measures their curvature
             return tuple(regions)
@@ -242,7 +176,7 @@ def _union_labels(first: tuple, second: tuple, edge_faces: np.ndarray,
     same = (r1[edge_faces[:, 0]] == r1[edge_faces[:, 1]]) & (r2[edge_faces[:, 0]] == r2[edge_faces[:, 1]])
     if split is not None:
         same &= split[edge_faces[:, 0]] == split[edge_faces[:, 1]]
-    region = _components(len(r1), edge_faces[same])
+    region = components(len(r1), edge_faces[same])
     prob = np.zeros(int(region.max()) + 1)
     prob[region] = np.maximum(p1[r1], p2[r2])
     return region, prob
@@ -306,50 +240,9 @@ def _roughness_labels(rough, areas, topo, angle, params):
     is_fracture = ring_average(is_fracture.astype(np.float64), areas, smooth_edges, params.vote_rings) > 0.5
     e0, e1 = topo.edge_faces[:, 0], topo.edge_faces[:, 1]
     joins = (is_fracture[e0] == is_fracture[e1]) & (angle < params.crease_angle_deg)
-    region = _components(len(areas), topo.edge_faces[joins])
-    region = _merge_small(region, topo.edge_faces, max(params.min_region_faces, int(params.min_region_share * len(areas))))
+    region = components(len(areas), topo.edge_faces[joins])
+    region = merge_small(region, topo.edge_faces, max(params.min_region_faces, int(params.min_region_share * len(areas))))
     n_regions = int(region.max()) + 1
     frac_area = np.bincount(region, weights=areas * is_fracture, minlength=n_regions)
     all_area = np.bincount(region, weights=areas, minlength=n_regions)
     return region, frac_area / np.where(all_area > 0, all_area, 1)
-
-
-def _components(n: int, edges: np.ndarray) -> np.ndarray:
-    g = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    _, labels = connected_components(g, directed=False)
-    return labels.astype(np.int64)
-
-
-def _merge_small(region: np.ndarray, edge_faces: np.ndarray, min_faces: int) -> np.ndarray:
-    """Merge regions with fewer than min_faces faces into the neighbour sharing most edges."""
-    region = region.copy()
-    for _ in range(20):
-        sizes = np.bincount(region)
-        small = sizes < min_faces
-        if not small[region].any() or small.all():
-            break
-        ra, rb = region[edge_faces[:, 0]], region[edge_faces[:, 1]]
-        cross = ra != rb
-        ra, rb = ra[cross], rb[cross]
-        # candidate moves: small region -> neighbour, weighted by shared edges; prefer big neighbours
-        src = np.concatenate([ra, rb])
-        dst = np.concatenate([rb, ra])
-        keep = small[src]
-        src, dst = src[keep], dst[keep]
-        if len(src) == 0:
-            break
-        pair_key = src * (region.max() + 1) + dst
-        uniq, counts = np.unique(pair_key, return_counts=True)
-        s, d = uniq // (region.max() + 1), uniq % (region.max() + 1)
-        score = counts + 1e-6 * sizes[d]
-        order = np.lexsort((-score, s))
-        first = np.concatenate([[True], s[order][1:] != s[order][:-1]])
-        target = np.arange(len(sizes))
-        target[s[order][first]] = d[order][first]
-        # avoid swapping two small regions into each other in the same round
-        mutual = target[target] == np.arange(len(sizes))
-        mutual &= target != np.arange(len(sizes))
-        target[mutual & (np.arange(len(sizes)) < target)] = np.arange(len(sizes))[mutual & (np.arange(len(sizes)) < target)]
-        region = target[region]
-    _, region = np.unique(region, return_inverse=True)
-    return region.astype(np.int64)

@@ -12,6 +12,7 @@ and a JSON `meta` string saying how the weights were made.
 """
 from __future__ import annotations
 
+import io as _stdio
 import json
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -19,6 +20,9 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+
+from ..io.files import atomic_write_bytes
+from ..io.fragment import FragmentError
 
 FEATURE_NAMES = ("kappa", "tau", "chord_right", "chord_left")
 INPUT_NAMES = tuple(f"g_{n}" for n in FEATURE_NAMES) + FEATURE_NAMES
@@ -60,13 +64,11 @@ def fuse(f: np.ndarray, model: FusionModel) -> np.ndarray:
 
 
 def save_model(path, model: FusionModel) -> None:
-    from .io import atomic_write_bytes
-    import io as _io
 
     arrays = {"mean": model.mean, "std": model.std, "meta": np.array(json.dumps(model.meta))}
     for i, (w, b) in enumerate(zip(model.weights, model.biases)):
         arrays[f"w{i}"], arrays[f"b{i}"] = w, b
-    buf = _io.BytesIO()
+    buf = _stdio.BytesIO()
     np.savez(buf, **arrays)
     atomic_write_bytes(path, buf.getvalue())
 
@@ -80,8 +82,6 @@ def load_model(path=None) -> FusionModel:
 
 @lru_cache(maxsize=8)
 def _load(path: str) -> FusionModel:
-    from .io import FragmentError
-
     try:
         data = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:

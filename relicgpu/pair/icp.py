@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..backends import numpy as numpy_backend
+
 
 def kabsch(cs: np.ndarray, ct: np.ndarray, h: np.ndarray) -> np.ndarray:
     """The 4x4 rigid transform carrying source onto target from centroids and H = sum (s-cs)(t-ct)^T."""
@@ -23,7 +25,7 @@ def kabsch(cs: np.ndarray, ct: np.ndarray, h: np.ndarray) -> np.ndarray:
 
 def fit_rigid(source: np.ndarray, target: np.ndarray, backend=None) -> np.ndarray:
     if backend is None:
-        from .backends import numpy as backend
+        backend = numpy_backend
     cs, ct, h, _ = backend.cross_covariance(source, target)
     return kabsch(np.asarray(cs, np.float64), np.asarray(ct, np.float64), np.asarray(h, np.float64))
 

@@ -12,8 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import atomic_write_bytes, atomic_write_json, ensure_not_input, grouped_lines, load_fragment
-from .outputs import scene_glb
+from ..backends import BackendError, resolve
+from ..errors import CliError
+from ..io.files import atomic_write_bytes, atomic_write_json, ensure_not_input, grouped_lines
+from ..io.load import load_fragment
+from ..io.glb import scene_glb
+from ..params import Params
+from .pipeline import match_pair, pair_scale
+from .prepare import prepare
 
 COLOURS = [(214, 120, 72, 255), (72, 140, 214, 255)]
 
@@ -27,11 +33,6 @@ def cli_add_arguments(parser) -> None:
 
 
 def cli_main(args) -> int:
-    from .cli import CliError
-    from .pipeline import match_pair, prepare, pair_scale
-    from .params import Params
-    from .backends import BackendError, resolve
-
     log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     out = Path(args.out)
     for name in ("match.json", "match.glb"):

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .icp import apply, invert
+from ..pair.icp import apply, invert
 
 
 @dataclass(frozen=True)

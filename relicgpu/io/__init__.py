@@ -1,0 +1,1 @@
+"""Reading fragment files and writing outputs: one module per format family."""

@@ -1,0 +1,236 @@
+"""`prepare` one fragment: segment -> contours -> features -> fuse (cacheable), and its surface
+sample and point-pair tables; a cloud is prepared on its points (relicgpu.pair.cloudmatch)."""
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from . import contour as contour_mod, features as features_mod, fusion as fusion_mod
+from ..backends import resolve
+from ..io.fragment import Fragment
+from ..params import Params
+from .cloudmatch import STRICT_SPREADS, cloud_sample, region_samples
+from ..cloud.points import even_subsample
+from .ppf import PairTable, pair_table, smoothed_normals
+from .segment import segment
+from .verify import SurfaceSample, vertex_normals
+
+@dataclass(frozen=True, eq=False)
+class Contour:
+    points: np.ndarray  # (N,3) closed loop, evenly resampled
+    region: int  # the fracture region it bounds
+    features: np.ndarray  # (N,5) raw [kcos, kappa, tau, chord_right, chord_left]
+    fused: np.ndarray  # (N,) fused value per point
+    feature_points: np.ndarray  # indices of curvature peaks (Eq. 17)
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    fragment: Fragment
+    scale: float  # the length relative parameters were scaled by
+    face_region: np.ndarray  # (F,)
+    region_is_fracture: np.ndarray  # (R,)
+    contours: list[Contour]
+    sample: SurfaceSample
+    patches: list = field(default_factory=list)  # fracture patches, largest first
+    timings: dict = field(default_factory=dict)
+    strict_sample: SurfaceSample | None = None  # clouds: the fracture picked strictly (cloudmatch.STRICT_SPREADS)
+    regions: list = field(default_factory=list)  # clouds: (sample, patch) of each crease-bounded region
+    second: "Prepared | None" = None  # meshes: prepared again with Params.second_segmentation
+
+    @property
+    def fracture_faces(self) -> np.ndarray:
+        return self.region_is_fracture[self.face_region]
+
+
+
+def prepare(fragment: Fragment, params: Params | None = None, backend="auto", scale: float | None = None,
+            with_second: bool = False) -> Prepared:
+    """Segment a fragment, extract its fracture contours and their fused features.
+
+    with_second: also prepare it on `Params.second_segmentation` (`Prepared.second`), as an
+    assembly does once per fragment; `match_pair` prepares it itself, only where the first
+    reading finds no fit, when it is not there."""
+    params = params or Params()
+    be = resolve(backend)
+    scale = float(scale or params.unit or fragment.size)
+    if scale <= 0:
+        raise ValueError(f"{fragment.name}: fragment has no extent")
+    if len(fragment.faces) == 0:
+        return _prepare_cloud(fragment, params, scale)
+    timings = {}
+    t0 = time.perf_counter()
+    seg = segment(fragment.vertices, fragment.faces, params, scale, be)
+    t1 = time.perf_counter()
+    timings["segment"] = t1 - t0
+
+    model = fusion_mod.load_model(params.fusion_weights)
+    step = params.contour_step * scale
+    contours = []
+    for r in np.flatnonzero(seg.region_is_fracture):
+        for loop in contour_mod.region_boundary_loops(fragment.faces, seg.face_region == r):
+            pts = fragment.vertices[loop]
+            if contour_mod.loop_length(pts) < params.min_contour_points * step:
+                continue
+            pts = contour_mod.resample_closed(pts, step)
+            raw, f = features_mod.contour_features(pts, step, params.kcos_k, params.feature_stride, be)
+            fused = fusion_mod.fuse(f, model)
+            peaks = features_mod.feature_points(raw[:, 0], params.feature_peak_window)
+            contours.append(Contour(pts, int(r), raw, fused, peaks))
+    t2 = time.perf_counter()
+    timings["contours+features"] = t2 - t1
+
+    prob = sampling_prob(seg, params)
+    sample = _surface_sample(fragment, seg, prob, params.icp_points, params.ppf_normal_radius * scale)
+    patches = fracture_patches(fragment, seg, prob)
+    timings["sample"] = time.perf_counter() - t2
+    second, second_params = None, _second_params(params)
+    if with_second and second_params is not None:
+        second = prepare(fragment, second_params, be, scale)
+        timings["second"] = sum(second.timings.values())
+    return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, patches, timings,
+                    second=second)
+
+
+def _second_params(params: Params) -> Params | None:
+    """params of the second reading (None: there is none)."""
+    if params.second_segmentation in (None, params.segmentation):
+        return None
+    return params.with_(segmentation=params.second_segmentation, second_segmentation=None)
+
+
+def _second_reading(p: Prepared, params: Params, be, scale: float) -> Prepared | None:
+    """A mesh fragment's second reading: kept in `p`, else prepared now (None: a cloud, or no
+    fragment to prepare)."""
+    if p.second is not None:
+        return p.second
+    if p.fragment is None or len(p.fragment.faces) == 0:
+        return None
+    return prepare(p.fragment, _second_params(params), be, scale)
+
+
+def with_fragment(prepared: Prepared, fragment) -> Prepared:
+    """`prepared` (and its second reading) holding `fragment` (None: left out, to ship or store)."""
+    second = None if prepared.second is None else replace(prepared.second, fragment=fragment)
+    return replace(prepared, fragment=fragment, second=second)
+
+
+def sampling_prob(seg, params: Params) -> np.ndarray:
+    """(F,) fracture likelihood the fracture sample is drawn with: `face_fracture_prob` where at
+    least `sample_min_prob` (0 elsewhere); where that likelihood-weighted area is under
+    `sample_min_share` of the fragment's (segmentation found next to no fracture) 1 on every face,
+    so that the whole surface is matched and verification decides."""
+    prob = np.where(seg.face_fracture_prob >= params.sample_min_prob, seg.face_fracture_prob, 0.0)
+    if (seg.areas * prob).sum() < params.sample_min_share * seg.areas.sum():
+        return np.ones(len(prob))
+    return prob
+
+
+def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, plane_radius: float) -> SurfaceSample:
+    """An even subsample of the vertices of faces of fracture likelihood prob (F,) > 0 (each
+    weighted by the largest likelihood of its faces) and of all vertices (with normals)."""
+    v, f = fragment.vertices, fragment.faces
+    normals = vertex_normals(v, f, seg.normals, seg.areas)
+    frac_faces = np.flatnonzero(prob > 0)
+    frac_faces = frac_faces[np.argsort(prob[frac_faces], kind="stable")]  # the likeliest face assigned last
+    vertex_weight = np.zeros(len(v))
+    np.maximum.at(vertex_weight, f[frac_faces].ravel(), np.repeat(prob[frac_faces], 3))
+    vertex_region = np.full(len(v), -1)
+    vertex_region[f[frac_faces].ravel()] = np.repeat(seg.face_region[frac_faces], 3)
+    frac_vertices = np.flatnonzero(vertex_weight > 0)
+    # spread evenly over space, not drawn at random: the same sample up to units (issue 15)
+    frac_vertices = frac_vertices[even_subsample(v[frac_vertices], n_points)]
+    surf = even_subsample(v, 2 * n_points)
+    plane_normals = smoothed_normals(v[frac_vertices], normals[frac_vertices], plane_radius)
+    return SurfaceSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf],
+                         normals[surf], plane_normals, fracture_weight=vertex_weight[frac_vertices])
+
+
+def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
+    """A fragment given as points (a `pointcloud.CloudFragment`, or any Fragment without faces),
+    sampled by `cloudmatch.cloud_sample`; no contours or patches (no surface to cut), so
+    matching runs on point-pair votes and ICP alone."""
+    t0 = time.perf_counter()
+    given = getattr(fragment, "normals", None)
+    sample = cloud_sample(fragment.vertices, given, params, scale)
+    strict = cloud_sample(fragment.vertices, given, params, scale, STRICT_SPREADS)
+    regions = [(s, Patch(0, centre, normal, 1.0), rough) for s, (centre, normal), rough in
+               region_samples(fragment.vertices, given, params, scale)]
+    no_faces = np.zeros(0, np.int64)
+    return Prepared(fragment, scale, no_faces, np.zeros(0, bool), [], sample, [],
+                    {"cloud": time.perf_counter() - t0}, strict, regions)
+
+
+@dataclass(frozen=True)
+class Patch:
+    """A fracture patch: its area-weighted centre and mean outward normal."""
+    region: int
+    centre: np.ndarray
+    normal: np.ndarray
+    area: float
+
+
+def fracture_patches(fragment: Fragment, seg, prob: np.ndarray | None = None) -> list[Patch]:
+    """The fracture facets (regions between creases, before neighbouring fracture regions are
+    joined): one per cut a fragment met, each a candidate contact with one neighbour. Faces count
+    by area times fracture likelihood prob (F,) (default: the segmentation's hard labels)."""
+    prob = seg.fracture_faces.astype(np.float64) if prob is None else prob
+    centres = fragment.vertices[fragment.faces].mean(axis=1)
+    weight = seg.areas * prob
+    out = []
+    for r in np.unique(seg.face_facet[weight > 0]):
+        m = (seg.face_facet == r) & (weight > 0)
+        w = weight[m]
+        n = (seg.normals[m] * w[:, None]).sum(0)
+        if w.sum() <= 0 or np.linalg.norm(n) == 0:
+            continue
+        out.append(Patch(int(r), (centres[m] * w[:, None]).sum(0) / w.sum(), n / np.linalg.norm(n), float(w.sum())))
+    return sorted(out, key=lambda p: -p.area)
+
+
+def _ppf_index(sample: SurfaceSample, n: int) -> np.ndarray:
+    """Indices of up to n fracture points spread over the sample."""
+    return np.linspace(0, len(sample.fracture) - 1, min(n, len(sample.fracture))).astype(np.int64)
+
+
+def ppf_points(sample: SurfaceSample, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Up to n fracture points spread over the sample, with their plane-fit normals: (n,3) each."""
+    idx = _ppf_index(sample, n)
+    normals = sample.fracture_plane_normals if sample.fracture_plane_normals is not None else sample.fracture_normals
+    return sample.fracture[idx], normals[idx]
+
+
+def ppf_weights(sample: SurfaceSample, n: int) -> np.ndarray:
+    """(n,) weights of `ppf_points`' points: fracture likelihoods over the largest (only ratios count)."""
+    w = sample.weights()[_ppf_index(sample, n)]
+    return w / (w.max() if len(w) else 1.0)
+
+
+_PPF_TABLES: dict = {}  # (points digest, settings) -> table: a fragment meets many partners
+
+
+def _ppf_table(sample: SurfaceSample, params: Params, scale: float, role: str) -> PairTable:
+    """The point-pair table of a fragment's fracture sample, as model (a) or as scene (b: normals
+    flipped, every third point a reference), built once per fragment and kept for a few. Keyed by
+    content, not identity: an engine's worker gets a fresh copy of a fragment with every job."""
+    points, normals = ppf_points(sample, params.ppf_points)
+    weights = ppf_weights(sample, params.ppf_points)
+    key = (hashlib.blake2b(points.tobytes() + normals.tobytes() + weights.tobytes(), digest_size=16).digest(),
+           role, params.ppf_points, params.ppf_distance_step * scale, params.ppf_angle_step_deg,
+           params.ppf_max_distance * scale)
+    table = _PPF_TABLES.pop(key, None)  # re-inserted last: the least recently used goes first
+    if table is None:
+        step = params.ppf_distance_step * scale
+        reach = params.ppf_max_distance * scale if params.ppf_max_distance > 0 else None
+        if role == "model":
+            table = pair_table(points, normals, step, params.ppf_angle_step_deg, max_distance=reach, weights=weights)
+        else:
+            table = pair_table(points, -normals, step, params.ppf_angle_step_deg, reference_stride=3, sort=False,
+                               max_distance=reach, weights=weights)
+        while len(_PPF_TABLES) >= 12:
+            _PPF_TABLES.pop(next(iter(_PPF_TABLES)))
+    _PPF_TABLES[key] = table
+    return table
