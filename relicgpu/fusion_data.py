@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import pair, synth
+from . import pair, synth, topology
 from . import params as params_module
 from .backends import numpy as numpy_backend
 from .pair import fusion as fusion_mod
@@ -93,7 +93,7 @@ def true_correspondences(points_a: list, moved_b: list, within: float) -> np.nda
     return np.concatenate(out).astype(np.int64) if out else np.zeros((0, 4), np.int64)
 
 
-_DATA_MODULES = (synth, pair, params_module, numpy_backend)
+_DATA_MODULES = (synth, pair, topology, params_module, numpy_backend)
 
 
 def _code_hash() -> str:

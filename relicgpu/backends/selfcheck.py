@@ -19,7 +19,7 @@ import numpy as np
 
 import relicgpu.backends.numpy as ref
 
-from ..pair.topology import mesh_topology
+from ..topology import mesh_topology
 
 FAMILIES = ("normals", "curvature", "flags", "lcs", "nearest", "covariance", "mosaic")
 

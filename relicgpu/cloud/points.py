@@ -10,7 +10,7 @@ import numpy as np
 
 from ..io.clouds import _check_points
 from ..io.fragment import Fragment, FragmentError
-from ..pair.topology import otsu_split
+from ..topology import otsu_split
 
 # --- point-cloud fragments (matched on their points) -----------------------
 

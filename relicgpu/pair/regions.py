@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .topology import Topology, components, merge_small, ring_average
+from ..topology import Topology, components, merge_small, ring_average
 
 # Pieces that are nearly all fracture (`skin_from_seeds`): chosen on corpus voronoi/rough/smooth (8 pieces,
 # seeds 0-2, 1500 faces), synth 10-piece breaks (seeds 0-1) and inner cells of a box cut by 12 random

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..params import Params
 from .segment_cues import cue_labels
-from .topology import Topology, components, merge_small, mesh_topology, otsu_split, ring_average, weighted_quantile
+from ..topology import Topology, components, merge_small, mesh_topology, otsu_split, ring_average, weighted_quantile
 
 
 # "hybrid" (see _hybrid_labels): chosen on synth and corpus rough-*/smooth-*, voronoi-*, vessel-* and

@@ -53,7 +53,7 @@ import numpy as np
 
 from ..params import Params
 from .regions import CUE_NAMES, RegionCues, _pair_medians, boundary_turn, crease_regions, region_cues
-from .topology import Topology, weighted_quantile
+from ..topology import Topology, weighted_quantile
 from .walls import WALL_END_MIN_FACES, band_shape, wall_end_labels, wall_thickness
 
 # Where the break is rough, regions at least this much (log units) smoother than the area-weighted

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .topology import Topology, components, ring_average, weighted_quantile
+from ..topology import Topology, components, ring_average, weighted_quantile
 
 # Wall ends (`wall_end_labels`, dense thin walls): chosen on corpus vessel-noisy and vessel-clean
 # (seeds 0-3), voronoi-* and the Blender sets held out. Face-level recall / precision of "end faces
