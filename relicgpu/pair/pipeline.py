@@ -19,7 +19,7 @@ from .cloudmatch import (AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_
                          cloud_params, cloud_sample, verify_clouds)
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .ppf import vote_poses
-from .verify import verify
+from .verify import rim_agreement, verify
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,8 +95,9 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     a, b: Fragments or Prepared (prepared at the pair's scale, else prepared again).
     heads: optional (contour_a, point_a, contour_b, point_b), the head nodes picked by hand.
 
-    Meshes where no fit passes are matched again on `Params.second_segmentation`'s reading
-    (`Prepared.second`, or prepared here); a fit found there scores `SECOND_READING_SCORE` of it.
+    Meshes are matched again on `Params.second_segmentation`'s reading (`Prepared.second`, or
+    prepared here) where no fit passes, or where the fit's rims disagree (`_rims`): its fit is
+    taken where the first found none or its rims agree more; it scores `SECOND_READING_SCORE`.
     """
     params = params or Params()
     be = resolve(backend)
@@ -106,19 +107,49 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     pb = _as_prepared(b, params, be, scale)
     params = cloud_params(params, (pa.fragment, pb.fragment), scale)
     timings = {"prepare": time.perf_counter() - t_start}
+    rims = None if heads is not None or is_cloud(pa.fragment) or is_cloud(pb.fragment) else _rims(
+        pa, pb, params, be, scale)
     result = _match_prepared(pa, pb, params, be, heads, scale, timings)
-    if not result.accepted and heads is None and _second_params(params) is not None:
-        # the fracture as the second segmentation reads it; verification decides (a segmentation
-        # that misreads one family reads another right, docs/benchmarks.md)
-        seconds = [_second_reading(p, params, be, scale) for p in (pa, pb)]
-        second = None if None in seconds else _match_prepared(*seconds, params, be, None, scale, dict(timings))
-        if second is not None and second.accepted:
-            return replace(second, score=SECOND_READING_SCORE * second.score,
-                           reason=f"{second.reason} ({params.second_segmentation} segmentation)")
+    if heads is None and _second_params(params) is not None:
+        if not result.accepted or (rims is not None and rims(result.transform) <= 0):
+            # the fracture as the second segmentation reads it (a segmentation that misreads one
+            # family reads another right, docs/benchmarks.md): where the first found no fit, or
+            # one whose rims do not mostly meet the other's creases
+            seconds = [_second_reading(p, params, be, scale) for p in (pa, pb)]
+            second = None if None in seconds else _match_prepared(*seconds, params, be, None, scale, dict(timings))
+            if second is not None and second.accepted and (
+                    not result.accepted or (not same_pose(result.transform, second.transform,
+                                                          params.contact_distance * scale)
+                                            and rims(second.transform) > rims(result.transform))):
+                return replace(second, score=SECOND_READING_SCORE * second.score,
+                               reason=f"{second.reason} ({params.second_segmentation} segmentation)")
     if result.accepted or heads is not None or pa.strict_sample is None or pb.strict_sample is None:
         return result
     result = _match_strict(pa, pb, params, be, scale, timings, result)
     return result if result.accepted else _match_regions(pa, pb, params, be, scale, timings, result)
+
+
+def _rims(pa: Prepared, pb: Prepared, params: Params, be, scale: float):
+    """A function from a transform of the pair (b onto a) to `verify.rim_agreement` of that fit.
+
+    Two readings' fits at different poses are weighed by it: a reading that takes a patch of skin
+    for the break can pass a wrong fit of that patch, and the right fit puts the outlines of the
+    common break together, whichever reading found it. A fit whose crease points on the other
+    surface mostly lie on its creases (agreement above 0) is taken as it is."""
+    index_of = _index_cache(be)
+    contact = params.contact_distance * scale
+    return lambda transform: rim_agreement(pa.sample, pb.sample, transform, contact, index_of)
+
+
+def _index_cache(be):
+    """A function from a point array to its nearest-neighbour index, each built once."""
+    indexes: dict = {}  # keyed by id, the array kept alive beside its index
+
+    def index_of(points: np.ndarray):
+        if id(points) not in indexes:
+            indexes[id(points)] = (points, be.nearest_index(points))
+        return indexes[id(points)][1]
+    return index_of
 
 
 def _match_strict(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
@@ -256,12 +287,7 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
                 for pose in facing_poses(P.centre, P.normal, Q.centre, Q.normal, params.patch_turns):
                     starts.append(pose)
                     origins.append(("patch", -1, -1, np.zeros((0, 2), np.int64)))
-    indexes: dict = {}  # nearest-neighbour indexes of the pair's own point sets, built once
-
-    def index_of(points: np.ndarray):
-        if id(points) not in indexes:
-            indexes[id(points)] = (points, be.nearest_index(points))
-        return indexes[id(points)][1]
+    index_of = _index_cache(be)  # nearest-neighbour indexes of the pair's own point sets
 
     w_a, w_b = pa.sample.weights(), pb.sample.weights()
     candidates = []

@@ -16,7 +16,7 @@ from .cloudmatch import STRICT_SPREADS, cloud_sample, region_samples
 from ..cloud.points import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals
 from .segment import segment
-from .verify import SurfaceSample, vertex_normals
+from .verify import SurfaceSample, sample_spacing, vertex_normals
 
 @dataclass(frozen=True, eq=False)
 class Contour:
@@ -84,7 +84,8 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     timings["contours+features"] = t2 - t1
 
     prob = sampling_prob(seg, params)
-    sample = _surface_sample(fragment, seg, prob, params.icp_points, params.ppf_normal_radius * scale)
+    sample = _surface_sample(fragment, seg, prob, params.icp_points, params.ppf_normal_radius * scale,
+                             params.crease_angle_deg)
     patches = fracture_patches(fragment, seg, prob)
     timings["sample"] = time.perf_counter() - t2
     second, second_params = None, _second_params(params)
@@ -129,9 +130,11 @@ def sampling_prob(seg, params: Params) -> np.ndarray:
     return prob
 
 
-def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, plane_radius: float) -> SurfaceSample:
+def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, plane_radius: float,
+                    crease_angle: float) -> SurfaceSample:
     """An even subsample of the vertices of faces of fracture likelihood prob (F,) > 0 (each
-    weighted by the largest likelihood of its faces) and of all vertices (with normals)."""
+    weighted by the largest likelihood of its faces), of all vertices (with normals), and of
+    points along the edges sharper than `crease_angle` degrees."""
     v, f = fragment.vertices, fragment.faces
     normals = vertex_normals(v, f, seg.normals, seg.areas)
     frac_faces = np.flatnonzero(prob > 0)
@@ -145,8 +148,23 @@ def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, pl
     frac_vertices = frac_vertices[even_subsample(v[frac_vertices], n_points)]
     surf = even_subsample(v, 2 * n_points)
     plane_normals = smoothed_normals(v[frac_vertices], normals[frac_vertices], plane_radius)
+    sharp = seg.topology.edge_vertices[seg.edge_angle > crease_angle]
+    creases = crease_points(v, sharp, sample_spacing(v[surf]), 2 * n_points)
     return SurfaceSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf],
-                         normals[surf], plane_normals, fracture_weight=vertex_weight[frac_vertices])
+                         normals[surf], plane_normals, fracture_weight=vertex_weight[frac_vertices], creases=creases)
+
+
+def crease_points(vertices: np.ndarray, edges: np.ndarray, step: float, n_points: int) -> np.ndarray:
+    """(K, 3) points along (E, 2) vertex-index edges of (V, 3) vertices, about `step` apart along
+    each edge and at most `n_points`, spread evenly (`even_subsample`)."""
+    if len(edges) == 0 or step <= 0:
+        return np.zeros((0, 3))
+    p, q = vertices[edges[:, 0]], vertices[edges[:, 1]]
+    parts = np.maximum(1, np.ceil(np.linalg.norm(q - p, axis=1) / step).astype(np.int64))
+    edge = np.repeat(np.arange(len(edges)), parts)
+    t = (np.arange(len(edge)) - np.repeat(np.cumsum(parts) - parts, parts) + 0.5) / np.repeat(parts, parts)
+    points = p[edge] + t[:, None] * (q[edge] - p[edge])
+    return points[even_subsample(points, n_points)]
 
 
 def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:

@@ -40,6 +40,7 @@ class SurfaceSample:
     normals: np.ndarray  # (Q,3) outward unit normals at `surface`
     fracture_plane_normals: np.ndarray | None = None  # (P,3) normals of local plane fits at `fracture`
     fracture_weight: np.ndarray | None = None  # (P,) fracture likelihood in (0, 1] matching weighs by; None: 1
+    creases: np.ndarray | None = None  # (K,3) points along the mesh's sharp edges (`rim_agreement`); None: clouds
 
     def weights(self) -> np.ndarray:
         """(P,) weight of each fracture point: `fracture_weight`, or 1 where none was given (clouds)."""
@@ -158,6 +159,57 @@ def facing_share(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, cont
         return 1.0
     cos = np.einsum("ij,ij->i", (b.normals @ transform[:3, :3].T)[touching], a.normals[np.asarray(idx)[touching]])
     return float(np.mean(cos < -0.5))
+
+
+def sample_spacing(points: np.ndarray) -> float:
+    """Median distance from each of (N, 3) points to its nearest other one (0 under two points)."""
+    if len(points) < 2:
+        return 0.0
+    from scipy.spatial import cKDTree
+
+    return float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+
+
+def in_contact(moved: np.ndarray, dist: np.ndarray, idx: np.ndarray, target: np.ndarray,
+               target_normals: np.ndarray | None, contact: float, reach: float) -> np.ndarray:
+    """(...,) bool: moved points (..., 3) that lie on the target surface, given the distance (...)
+    and index (...) of their nearest target point (M, 3): nearer than `contact`, or, where
+    `target_normals` (M, 3) are given, nearer than `reach` and within `contact` of that point's
+    tangent plane.
+
+    Two samplings of one surface never share points: where the target's spacing exceeds
+    `contact` (a flat break decimated to large triangles, a sparse sample) a point lying on the
+    surface between samples is farther than `contact` from every one, and point distances alone
+    count the sampling, not the contact (reach: the target's spacing)."""
+    near = dist < contact
+    if target_normals is None or reach <= contact:
+        return near
+    plane = np.abs(np.einsum("...d,...d->...", moved - target[idx], target_normals[idx]))
+    return near | ((dist < reach) & (plane < contact))
+
+
+def rim_agreement(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, contact: float, index_of) -> float:
+    """How well the sharp creases of the two surfaces coincide where they touch (b moved by
+    `transform`): crease points lying on the other surface (`icp.in_contact`) that also lie on
+    one of its creases, less those that do not, over all crease points of both; 0 where neither
+    sample has creases.
+
+    Two pieces meet over a shared break whose outline is a crease on both: at the right fit
+    their rims coincide. A wrong fit that lays a break on a flat skin face, or a break turned on
+    its partner, puts one piece's rim across the middle of the other's face."""
+    if a.creases is None or b.creases is None or not (len(a.creases) and len(b.creases)):
+        return 0.0
+
+    def signed(points, other: SurfaceSample) -> float:
+        idx, dist = index_of(other.surface).query(points)
+        on = in_contact(points, np.asarray(dist), np.asarray(idx, np.int64), other.surface, other.normals, contact,
+                        sample_spacing(other.surface))
+        _, gap = index_of(other.creases).query(points[on])
+        matched = int(np.sum(np.asarray(gap) < max(contact, sample_spacing(other.creases))))
+        return 2 * matched - int(on.sum())
+
+    total = signed(apply(transform, b.creases), a) + signed(apply(np.linalg.inv(transform), a.creases), b)
+    return total / (len(a.creases) + len(b.creases))
 
 
 def surface_weights(sample: SurfaceSample, reach: float, index_of) -> np.ndarray:

@@ -1,0 +1,95 @@
+"""Rim agreement (verify.rim_agreement) and how match_pair weighs two readings' fits by it."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+
+import relicgpu.pair.pipeline as pl
+from relicgpu.io.fragment import Fragment
+from relicgpu.pair.icp import rotation_angle_deg
+from relicgpu.pair.prepare import crease_points, prepare
+from relicgpu.pair.verify import in_contact, rim_agreement, sample_spacing
+from relicgpu.params import Params
+
+
+def _half(lo_x: float, hi_x: float, pose: np.ndarray) -> Fragment:
+    """One half of a 2 x 1 x 0.5 block cut square at x = 1, finely triangulated, moved by pose."""
+    box = trimesh.creation.box(bounds=[[lo_x, 0.0, 0.0], [hi_x, 1.0, 0.5]])
+    v, f = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, 0.04)
+    return Fragment(f"half{lo_x:g}", v @ pose[:3, :3].T + pose[:3, 3], np.asarray(f, np.int32))
+
+
+def _turn(axis: np.ndarray, angle_deg: float, about: np.ndarray) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, :3] = trimesh.transformations.rotation_matrix(np.radians(angle_deg), axis)[:3, :3]
+    t[:3, 3] = about - t[:3, :3] @ about
+    return t
+
+
+@pytest.fixture(scope="module")
+def halves():
+    """The two halves prepared, b moved away; truth carries b's coordinates onto a's."""
+    away = _turn(np.array([0.3, 1.0, 0.2]), 70.0, np.zeros(3))
+    away[:3, 3] += [3.0, -1.0, 2.0]
+    a, b = _half(0.0, 1.0, np.eye(4)), _half(1.0, 2.0, away)
+    params = Params()
+    pa, pb = (prepare(x, params, "numpy", scale=2.0) for x in (a, b))
+    return pa, pb, np.linalg.inv(away), params
+
+
+def test_crease_points_lie_along_the_edges_at_the_step():
+    v = np.array([[0.0, 0, 0], [1.0, 0, 0], [1.0, 0.25, 0]])
+    pts = crease_points(v, np.array([[0, 1], [1, 2]]), 0.1, 100)
+    assert len(pts) == 10 + 3  # ceil(1 / 0.1) and ceil(0.25 / 0.1) pieces, a point at each middle
+    assert np.allclose(pts[:, 2], 0) and np.all((pts[:, 1] == 0) | np.isclose(pts[:, 0], 1))
+    assert crease_points(v, np.zeros((0, 2), np.int64), 0.1, 100).shape == (0, 3)
+
+
+def test_in_contact_counts_points_between_sparse_samples_by_their_tangent_plane():
+    # a plane sampled every 0.1, points on it between the samples, and points 0.03 above it
+    g = np.arange(0.0, 1.01, 0.1)
+    target = np.stack(np.meshgrid(g, g, [0.0]), -1).reshape(-1, 3)
+    normals = np.tile([0.0, 0.0, 1.0], (len(target), 1))
+    rng = np.random.default_rng(0)
+    on = np.column_stack([rng.uniform(0.1, 0.9, (200, 2)), np.zeros(200)])
+    off = on + [0.0, 0.0, 0.03]
+    for pts, expect in ((on, True), (off, False)):
+        from scipy.spatial import cKDTree
+        dist, idx = cKDTree(target).query(pts)
+        got = in_contact(pts, dist, idx, target, normals, 0.01, sample_spacing(target))
+        assert np.all(got == expect)
+        assert not np.all(in_contact(pts, dist, idx, target, None, 0.01, 0.1))  # by distance alone: sampling
+
+
+def test_rims_agree_at_the_right_fit_and_not_at_a_turned_one(halves):
+    pa, pb, truth, params = halves
+    assert len(pa.sample.creases) > 50 and len(pb.sample.creases) > 50
+    contact = params.contact_distance * 2.0
+    index_of = pl._index_cache(pl.resolve("numpy"))
+    right = rim_agreement(pa.sample, pb.sample, truth, contact, index_of)
+    # the cut face (1 x 0.5) turned a quarter about its normal: it lies on a's cut face, crosswise
+    turned = _turn(np.array([1.0, 0, 0]), 90.0, np.array([1.0, 0.5, 0.25])) @ truth
+    wrong = rim_agreement(pa.sample, pb.sample, turned, contact, index_of)
+    assert right > 0.2 and wrong < 0  # right: the cut rim is 3 of the 10 units of each half's edges
+    no_creases = replace(pa.sample, creases=None)
+    assert rim_agreement(no_creases, pb.sample, truth, contact, index_of) == 0.0
+
+
+def test_match_pair_takes_the_second_readings_fit_where_its_rims_agree_more(halves, monkeypatch):
+    """Both readings pass a fit at different poses: the one whose rims meet the other's creases wins."""
+    pa, pb, truth, params = halves
+    pa, pb = (replace(p, second=p) for p in (pa, pb))  # the second reading: its fits are scripted below
+    turned = _turn(np.array([1.0, 0, 0]), 90.0, np.array([1.0, 0.5, 0.25])) @ truth
+
+    def fit(transform):
+        return pl.PairMatch(transform, True, 0.5, 0.001, 0.5, 0.0, np.zeros((0, 2), np.int64), -1, -1, "accepted")
+
+    for first, second, expect_second in ((turned, truth, True), (truth, turned, False)):
+        calls = iter([fit(first), fit(second)])
+        monkeypatch.setattr(pl, "_match_prepared", lambda *a, **k: next(calls))
+        m = pl.match_pair(pa, pb, params, "numpy", scale=2.0)
+        assert m.accepted
+        assert rotation_angle_deg(m.transform[:3, :3] @ truth[:3, :3].T) < 1e-6
+        assert m.reason.endswith("(hybrid segmentation)") == expect_second
+        assert m.score == (0.25 if expect_second else 0.5)  # a second reading's fit scores half
