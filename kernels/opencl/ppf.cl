@@ -1,13 +1,16 @@
 /* Point-pair-feature votes (OpenCL): per scene reference, the best (model point, angle bin)
    cell of Drost's vote row and its total.
 
+   The host lays out the model pairs that vote (`_prep.PpfVotes.voting_model`): bucket k
+   is records start[k]:start[k + 1], at most bucket_cap of them, already spread over a
+   larger bucket, each (model point, angle, weight).
+
    A work-item owns one dense row of n_model * alpha_bins REAL cells in `rows` and takes
    the scene references t, t + T, t + 2T, ... in turn. For a reference it walks the
-   reference's scene pairs in table order and, for each, the model pairs of its key
-   (bucket_cap of them, spread over a larger bucket), adding each vote to its cell: the
-   reference's bincount additions in the same order (bit for bit where REAL is double: a
-   vote's weight is a product of two float32 numbers, exact in double).
-   No atomics; the result does not depend on timing.
+   reference's scene pairs in table order and, for each, the records of its key, adding
+   each vote to its cell: the reference's bincount additions in the same order (bit for
+   bit where REAL is double: a vote's weight is a product of two float32 numbers, exact in
+   double). No atomics; the result does not depend on timing.
 
    The argmax is kept while voting: weights are >= 0, so a cell's total only grows, and
    the first largest cell of the finished row is the one that, when it reached its final
@@ -43,13 +46,13 @@ static inline int angle_bin(const float m_alpha, const float s_alpha, const floa
     return b;
 }
 
-/* model: 3 floats per model pair, (model point, angle, weight) */
+/* model: 3 floats per voting model pair (model point, angle, weight), bucket k at
+   start[k]:start[k + 1] */
 __kernel void ppf_votes(__global const int *start, const long last_key, __global const float *model,
                         __global const int *s_offsets, __global const long *s_key, __global const float *s_alpha,
-                        __global const float *s_weight, const int n_refs, const int alpha_bins, const int cap,
-                        const float shift, const float scale, const int n_threads, const int row,
-                        __global REAL *rows, const int width, __global int *touched, __global int *best_cell,
-                        __global REAL *best_votes)
+                        __global const float *s_weight, const int n_refs, const int alpha_bins, const float shift,
+                        const float scale, const int n_threads, const int row, __global REAL *rows,
+                        const int width, __global int *touched, __global int *best_cell, __global REAL *best_votes)
 {
     const int t = get_global_id(0);
     if (t >= n_threads)
@@ -61,15 +64,9 @@ __kernel void ppf_votes(__global const int *start, const long last_key, __global
         int best_c = 0, n_touched = 0;
         for (int s = s_offsets[r]; s < s_offsets[r + 1]; ++s) {
             const long k = min(s_key[s], last_key);
-            const int lo = start[k], found = start[k + 1] - lo;
             const float a_s = s_alpha[s];
             const REAL ws = (REAL)s_weight[s];
-            /* pair i of the bucket: lo + i * found / cap (found > cap) or lo + i, stepped without division */
-            const int step = found > cap ? found / cap : 1;
-            const int rem = found > cap ? found - step * cap : 0;
-            const int count = min(found, cap);
-            int m = lo, acc = 0;
-            for (int i = 0; i < count; ++i) {
+            for (int m = start[k]; m < start[k + 1]; ++m) {
                 const float3 pair = vload3(m, model);
                 const int c = (int)pair.x * alpha_bins + angle_bin(pair.y, a_s, shift, scale, alpha_bins);
                 const REAL old = mine[c];
@@ -83,12 +80,6 @@ __kernel void ppf_votes(__global const int *start, const long last_key, __global
                 if (v > best_v || (v == best_v && c < best_c)) {
                     best_v = v;
                     best_c = c;
-                }
-                m += step;
-                acc += rem;
-                if (acc >= cap) {
-                    acc -= cap;
-                    ++m;
                 }
             }
         }

@@ -1,13 +1,16 @@
 """Point-pair-feature votes (Warp): per scene reference, the best (model point, angle bin)
 cell of Drost's vote row and its total.
 
+The host lays out the model pairs that vote (`_prep.PpfVotes.voting_model`): bucket k is
+records start[k]:start[k + 1], at most bucket_cap of them, already spread over a larger
+bucket, each (model point, angle, weight).
+
 A thread owns one dense row of n_model * alpha_bins float64 cells in `rows` and takes the
 scene references t, t + T, t + 2T, ... in turn. For a reference it walks the reference's
-scene pairs in table order and, for each, the model pairs of its key (bucket_cap of them,
-spread over a larger bucket), adding each vote to its cell: the same additions in the same
-order as the reference's bincount, so the totals agree bit for bit (a vote's weight is a
-product of two float32 numbers, exact in float64). No atomics; the result does not depend
-on thread timing.
+scene pairs in table order and, for each, the records of its key, adding each vote to its
+cell: the same additions in the same order as the reference's bincount, so the totals
+agree bit for bit (a vote's weight is a product of two float32 numbers, exact in float64).
+No atomics; the result does not depend on thread timing.
 
 The argmax is kept while voting: weights are >= 0, so a cell's total only grows, and the
 first largest cell of the finished row is the one that, when it reached its final total,
@@ -40,10 +43,9 @@ def angle_bin(m_alpha: wp.float32, s_alpha: wp.float32, shift: wp.float32, scale
 def ppf_votes(start: wp.array(dtype=wp.int32), last_key: wp.int64, model: wp.array(dtype=wp.vec3),
               s_offsets: wp.array(dtype=wp.int32), s_key: wp.array(dtype=wp.int64),
               s_alpha: wp.array(dtype=wp.float32), s_weight: wp.array(dtype=wp.float32), n_refs: wp.int32,
-              alpha_bins: wp.int32, cap: wp.int32, shift: wp.float32, scale: wp.float32, n_threads: wp.int32,
+              alpha_bins: wp.int32, shift: wp.float32, scale: wp.float32, n_threads: wp.int32,
               rows: wp.array2d(dtype=wp.float64), touched: wp.array2d(dtype=wp.int32),
               best_cell: wp.array(dtype=wp.int32), best_votes: wp.array(dtype=wp.float64)):
-    # model[j] = (model point, angle, weight) of model pair j
     t = wp.tid()
     width = touched.shape[1]
     row_len = rows.shape[1]
@@ -54,19 +56,9 @@ def ppf_votes(start: wp.array(dtype=wp.int32), last_key: wp.int64, model: wp.arr
         n_touched = wp.int32(0)
         for s in range(s_offsets[r], s_offsets[r + 1]):
             k = wp.min(s_key[s], last_key)
-            lo = start[k]
-            found = start[k + wp.int64(1)] - lo
             a_s = s_alpha[s]
             ws = wp.float64(s_weight[s])
-            # pair i of the bucket: lo + i * found // cap (found > cap) or lo + i, stepped without division
-            step = wp.int32(1)
-            rem = wp.int32(0)
-            if found > cap:
-                step = found // cap
-                rem = found - step * cap
-            m = lo
-            acc = wp.int32(0)
-            for i in range(wp.min(found, cap)):
+            for m in range(start[k], start[k + wp.int64(1)]):
                 pair = model[m]
                 c = wp.int32(pair[0]) * alpha_bins + angle_bin(pair[1], a_s, shift, scale, alpha_bins)
                 old = rows[t, c]
@@ -79,11 +71,6 @@ def ppf_votes(start: wp.array(dtype=wp.int32), last_key: wp.int64, model: wp.arr
                 if v > best_v or (v == best_v and c < best_c):
                     best_v = v
                     best_c = c
-                m += step
-                acc += rem
-                if acc >= cap:
-                    acc -= cap
-                    m += 1
         if n_touched <= width:
             for j in range(n_touched):
                 rows[t, touched[t, j]] = wp.float64(0.0)

@@ -383,15 +383,24 @@ class PpfVotes:
         per_thread = self.row * cell_bytes + 4 * self.touched_width
         return max(1, min(wanted, budget_bytes // per_thread, self.n_refs * self.row * 8 // per_thread))
 
-    def model_records(self) -> np.ndarray:
-        """(M,3) float32 rows (model point, angle, weight: 1 where None), so that a vote reads
-        its model pair from one place (in a capped bucket every vote is a cache miss). The
-        point is held as a float, exact below 2^24."""
-        rec = np.empty((len(self.m_ref), 3), np.float32)
-        rec[:, 0] = self.m_ref
-        rec[:, 1] = self.m_alpha
-        rec[:, 2] = 1.0 if self.m_weight is None else self.m_weight
-        return rec
+    def voting_model(self) -> tuple[np.ndarray, np.ndarray]:
+        """The model pairs that vote, bucket by bucket: (K+2,) int32 starts and (V,3) float32
+        records (model point, angle, weight: 1 where None), bucket k holding its first
+        min(found, cap) pairs or, past the cap, pairs lo + i * found // cap in order. A vote
+        then reads consecutive records instead of pairs strewn over a large bucket (a cache
+        miss each, in three arrays). The point is held as a float, exact below 2^24."""
+        found = np.diff(self.start)
+        counts = np.minimum(found, self.bucket_cap)
+        starts = np.zeros(len(self.start), np.int64)
+        np.cumsum(counts, out=starts[1:])
+        i = np.arange(int(starts[-1]), dtype=np.int64) - np.repeat(starts[:-1], counts)
+        f = np.repeat(found, counts)
+        j = np.repeat(self.start[:-1], counts) + np.where(f > self.bucket_cap, i * f // self.bucket_cap, i)
+        rec = np.empty((len(j), 3), np.float32)
+        rec[:, 0] = self.m_ref[j]
+        rec[:, 1] = self.m_alpha[j]
+        rec[:, 2] = 1.0 if self.m_weight is None else self.m_weight[j]
+        return starts.astype(np.int32), rec
 
     def scene_weight_or_ones(self) -> np.ndarray:
         return np.ones(len(self.s_key), np.float32) if self.s_weight is None else self.s_weight

@@ -327,17 +327,17 @@ class OpenCLBackend:
         threads = b.rows_in_flight(_PPF_ROWS_PER_UNIT[self.kind] * self.device.max_compute_units,
                                    _PPF_SCRATCH_BYTES[self.kind], size)
         shift, scale = b.angle_constants()
+        start, records = b.voting_model()
         with self._lock:
             rows = self._empty(threads * b.row * size)
             self.cl.enqueue_fill_buffer(self.queue, rows, r(0), 0, threads * b.row * size)
             cell, votes = self._empty(4 * b.n_refs), self._empty(size * b.n_refs)
-            self._run("ppf.cl", "ppf_votes", threads, self._to_device(b.start.astype(np.int32)),
-                      np.int64(len(b.start) - 2), self._to_device(b.model_records()),
-                      self._to_device(b.s_offsets.astype(np.int32)), self._to_device(b.s_key),
-                      self._to_device(b.s_alpha), self._to_device(b.scene_weight_or_ones()), np.int32(b.n_refs),
-                      np.int32(b.alpha_bins), np.int32(b.bucket_cap), shift, scale, np.int32(threads),
-                      np.int32(b.row), rows, np.int32(b.touched_width), self._empty(4 * threads * b.touched_width),
-                      cell, votes, local=_PPF_LOCAL[self.kind])
+            self._run("ppf.cl", "ppf_votes", threads, self._to_device(start), np.int64(len(start) - 2),
+                      self._to_device(records), self._to_device(b.s_offsets.astype(np.int32)),
+                      self._to_device(b.s_key), self._to_device(b.s_alpha), self._to_device(b.scene_weight_or_ones()),
+                      np.int32(b.n_refs), np.int32(b.alpha_bins), shift, scale, np.int32(threads), np.int32(b.row),
+                      rows, np.int32(b.touched_width), self._empty(4 * threads * b.touched_width), cell, votes,
+                      local=_PPF_LOCAL[self.kind])
             best = self._from_device(cell, b.n_refs, np.int32).astype(np.int64)
             return best, self._from_device(votes, b.n_refs, r).astype(np.float64)
 

@@ -232,11 +232,12 @@ class WarpBackend:
         cell = wp.empty(b.n_refs, dtype=wp.int32, device=self.device)
         votes = wp.empty(b.n_refs, dtype=wp.float64, device=self.device)
         shift, scale = b.angle_constants()
+        start, records = b.voting_model()
         self._launch(self._k_ppf.ppf_votes, threads, [
-            self._array(b.start.astype(np.int32), wp.int32), len(b.start) - 2, self._array(b.model_records(), wp.vec3),
+            self._array(start, wp.int32), len(start) - 2, self._array(records, wp.vec3),
             self._array(b.s_offsets.astype(np.int32), wp.int32), self._array(b.s_key, wp.int64),
             self._array(b.s_alpha, wp.float32), self._array(b.scene_weight_or_ones(), wp.float32), b.n_refs,
-            b.alpha_bins, b.bucket_cap, float(shift), float(scale), threads, rows, touched, cell, votes])
+            b.alpha_bins, float(shift), float(scale), threads, rows, touched, cell, votes])
         return cell.numpy().astype(np.int64), votes.numpy()
 
     # --- the mosaic's kernels ----------------------------------------------------
