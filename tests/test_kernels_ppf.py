@@ -192,6 +192,26 @@ def test_adversarial_cases_reach_what_they_name():
     assert np.all(total == 0)
 
 
+def test_rows_are_clean_for_the_next_reference(backend):
+    """A device row serves reference after reference: cells touched by one must be zero for the
+    next, when exactly as many cells were touched as the list of touched cells holds (8 of a
+    64-cell row) and when more were. Model bucket k holds one pair voting for cell k."""
+    bins, n_model = 8, 8
+    start = np.arange(65)
+    m_ref = np.arange(64) // bins
+    m_alpha = (-np.pi + (np.arange(64) % bins + 0.5) * 2 * np.pi / bins).astype(np.float32)
+    fill = list(range(8)) + [0, 1, 2]  # 8 new cells, then cells seen already
+    overflow = list(range(21))
+    groups = [fill, [7, 63, 63], overflow, [5, 40, 40]]  # the checks tie with a leftover cell
+    keys = [g for g in groups for _ in range(8)]  # 8 references each: one thread's next is 8 on
+    s_key = np.concatenate(keys)
+    s_ref = np.repeat(np.arange(32), [len(k) for k in keys])
+    args = [start, m_ref, m_alpha, None, s_key, s_ref, np.zeros(len(s_key), np.float32), None, 32, n_model, bins, 4]
+    best, total = ref.ppf_votes(*args)
+    assert list(best[8:16]) == [63] * 8 and list(best[24:]) == [40] * 8 and set(total[8:16]) == {2.0}
+    _assert_agrees(backend, args)
+
+
 def test_bad_inputs_are_refused(backend):
     args = _random_tables(np.random.default_rng(9), weighted=True) + [4]
     negative = list(args)

@@ -15,9 +15,10 @@
    The argmax is kept while voting: weights are >= 0, so a cell's total only grows, and
    the first largest cell of the finished row is the one that, when it reached its final
    total, beat the running best or tied it at a lower index (the best starts as cell 0 at
-   total 0). A cell that leaves zero is listed in `touched` (up to its width); afterwards
-   the listed cells are zeroed again, or the whole row where more were touched, so the row
-   is clean for the next reference at the cost of the votes, not of the row. */
+   total 0). A cell that leaves zero is listed in `touched` (up to `width`, each work-item
+   having width + 1 slots); afterwards the listed cells are zeroed again, or the whole row
+   where more were touched, so the row is clean for the next reference at the cost of the
+   votes, not of the row. */
 
 #ifdef HAVE_FP64
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -58,7 +59,7 @@ __kernel void ppf_votes(__global const int *start, const long last_key, __global
     if (t >= n_threads)
         return;
     __global REAL *mine = rows + (long)t * row;
-    __global int *listed = touched + (long)t * width;
+    __global int *listed = touched + (long)t * (width + 1);
     for (int r = t; r < n_refs; r += n_threads) {
         REAL best_v = 0;
         int best_c = 0, n_touched = 0;
@@ -72,11 +73,10 @@ __kernel void ppf_votes(__global const int *start, const long last_key, __global
                 const REAL old = mine[c];
                 const REAL v = old + (REAL)pair.z * ws;
                 mine[c] = v;
-                if (old == 0 && v != 0) {
-                    if (n_touched < width)
-                        listed[n_touched] = c;
-                    ++n_touched;
-                }
+                /* listed whether new or not (a cell not new is overwritten by the next one), the
+                   slot past the list a sink once it is full: no branch to mispredict */
+                listed[min(n_touched, width)] = c;
+                n_touched += old == 0;
                 if (v > best_v || (v == best_v && c < best_c)) {
                     best_v = v;
                     best_c = c;

@@ -15,9 +15,10 @@ No atomics; the result does not depend on thread timing.
 The argmax is kept while voting: weights are >= 0, so a cell's total only grows, and the
 first largest cell of the finished row is the one that, when it reached its final total,
 beat the running best or tied it at a lower index (the best starts as cell 0 at total 0).
-A cell that leaves zero is listed in `touched` (up to its width); afterwards the listed
-cells are zeroed again, or the whole row where more were touched, so the row is clean for
-the next reference at the cost of the votes, not of the row.
+A cell that leaves zero is listed in `touched` (up to its width, one slot less than its
+length); afterwards the listed cells are zeroed again, or the whole row where more were
+touched, so the row is clean for the next reference at the cost of the votes, not of the
+row.
 """
 import warp as wp
 
@@ -47,7 +48,7 @@ def ppf_votes(start: wp.array(dtype=wp.int32), last_key: wp.int64, model: wp.arr
               rows: wp.array2d(dtype=wp.float64), touched: wp.array2d(dtype=wp.int32),
               best_cell: wp.array(dtype=wp.int32), best_votes: wp.array(dtype=wp.float64)):
     t = wp.tid()
-    width = touched.shape[1]
+    width = touched.shape[1] - 1
     row_len = rows.shape[1]
     r = t
     while r < n_refs:
@@ -64,10 +65,10 @@ def ppf_votes(start: wp.array(dtype=wp.int32), last_key: wp.int64, model: wp.arr
                 old = rows[t, c]
                 v = old + wp.float64(pair[2]) * ws
                 rows[t, c] = v
-                if old == wp.float64(0.0) and v != wp.float64(0.0):
-                    if n_touched < width:
-                        touched[t, n_touched] = c
-                    n_touched += 1
+                # listed whether new or not (a cell not new is overwritten by the next one), the
+                # slot past the list a sink once it is full: no branch to mispredict
+                touched[t, wp.min(n_touched, width)] = c
+                n_touched += wp.where(old == wp.float64(0.0), 1, 0)
                 if v > best_v or (v == best_v and c < best_c):
                     best_v = v
                     best_c = c

@@ -373,14 +373,15 @@ class PpfVotes:
 
     @property
     def touched_width(self) -> int:
-        """Cells a thread lists as touched before it zeroes its whole row instead (an eighth)."""
+        """Cells a thread lists as touched before it zeroes its whole row instead (an eighth);
+        its list has one slot more, a sink for the writes past a full list."""
         return max(1, self.row // 8)
 
     def rows_in_flight(self, wanted: int, budget_bytes: int, cell_bytes: int = 8) -> int:
         """Threads, each with a scratch row and a touched list (a thread takes references t,
         t+T, ...): at most `wanted`, what `budget_bytes` holds and what the reference's dense
         (n_refs, row) float64 votes would take, at least one."""
-        per_thread = self.row * cell_bytes + 4 * self.touched_width
+        per_thread = self.row * cell_bytes + 4 * (self.touched_width + 1)
         return max(1, min(wanted, budget_bytes // per_thread, self.n_refs * self.row * 8 // per_thread))
 
     def voting_model(self) -> tuple[np.ndarray, np.ndarray]:

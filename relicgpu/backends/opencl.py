@@ -336,7 +336,7 @@ class OpenCLBackend:
                       self._to_device(records), self._to_device(b.s_offsets.astype(np.int32)),
                       self._to_device(b.s_key), self._to_device(b.s_alpha), self._to_device(b.scene_weight_or_ones()),
                       np.int32(b.n_refs), np.int32(b.alpha_bins), shift, scale, np.int32(threads), np.int32(b.row),
-                      rows, np.int32(b.touched_width), self._empty(4 * threads * b.touched_width), cell, votes,
+                      rows, np.int32(b.touched_width), self._empty(4 * threads * (b.touched_width + 1)), cell, votes,
                       local=_PPF_LOCAL[self.kind])
             best = self._from_device(cell, b.n_refs, np.int32).astype(np.int64)
             return best, self._from_device(votes, b.n_refs, r).astype(np.float64)

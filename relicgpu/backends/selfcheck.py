@@ -220,20 +220,36 @@ def _ppf_case():
     return (start, m_ref, m_alpha, s_key, s_ref, s_alpha, n_refs, n_model, alpha_bins), m_weight, s_weight, cap
 
 
+@functools.lru_cache(maxsize=None)
+def _ppf_reuse_case():
+    """References that touch exactly as many cells as a device's list of touched cells holds (8
+    of a 64-cell row), or more, each followed (in one thread's turn, 8 references on) by one
+    that ties with a cell left over if the row was not cleaned. Bucket k votes for cell k."""
+    start = np.arange(65)
+    m_ref, m_alpha = np.arange(64) // 8, (-np.pi + (np.arange(64) % 8 + 0.5) * np.pi / 4).astype(np.float32)
+    keys = [g for g in ([*range(8), 0, 1, 2], [7, 63, 63], [*range(21)], [5, 40, 40]) for _ in range(8)]
+    s_key = np.concatenate(keys)
+    s_ref = np.repeat(np.arange(32), [len(k) for k in keys])
+    return start, m_ref, m_alpha, s_key, s_ref, np.zeros(len(s_key), np.float32), 32, 8, 8
+
+
 def _check_ppf(be) -> str | None:
     (start, m_ref, m_alpha, s_key, s_ref, s_alpha, n_refs, n_model, bins), m_w, s_w, cap = _ppf_case()
-    for label, mw, sw in (("unweighted", None, None), ("weighted", m_w, s_w), ("model-weighted", m_w, None)):
-        args = (start, m_ref, m_alpha, mw, s_key, s_ref, s_alpha, sw, n_refs, n_model, bins, cap)
+    reuse = _ppf_reuse_case()
+    cases = [(label, (start, m_ref, m_alpha, mw, s_key, s_ref, s_alpha, sw, n_refs, n_model, bins, cap))
+             for label, mw, sw in (("unweighted", None, None), ("weighted", m_w, s_w), ("model-weighted", m_w, None))]
+    cases.append(("rows reused", (*reuse[:3], None, *reuse[3:6], None, *reuse[6:], 4)))
+    for label, args in cases:
         got, total = (np.asarray(x) for x in be.ppf_votes(*args))
         rows = ref.ppf_vote_rows(*args)
         want, want_total = rows.argmax(axis=1), rows.max(axis=1)
         if got.shape != want.shape or got.min() < 0 or got.max() >= rows.shape[1]:
             return f"ppf_votes ({label}): cells out of range"
-        if mw is None and sw is None:
+        if args[3] is None and args[7] is None:
             bad = _disagreement(got == want, got, want) or _disagreement(total == want_total, total, want_total)
         else:  # float sums: the chosen cell must hold the row's largest total (ties may go either way)
             tol = 1e-5 * (np.abs(want_total) + 1e-6)
-            chosen = rows[np.arange(n_refs), got]
+            chosen = rows[np.arange(len(rows)), got]
             bad = (_disagreement(np.abs(total - want_total) <= tol, total, want_total)
                    or _disagreement(np.abs(chosen - want_total) <= tol, chosen, want_total))
         if bad:

@@ -228,7 +228,7 @@ class WarpBackend:
             return np.zeros(0, np.int64), np.zeros(0)
         threads = b.rows_in_flight(_PPF_ROWS[self.kind], _PPF_SCRATCH_BYTES[self.kind])
         rows = wp.zeros((threads, b.row), dtype=wp.float64, device=self.device)
-        touched = wp.empty((threads, b.touched_width), dtype=wp.int32, device=self.device)
+        touched = wp.empty((threads, b.touched_width + 1), dtype=wp.int32, device=self.device)
         cell = wp.empty(b.n_refs, dtype=wp.int32, device=self.device)
         votes = wp.empty(b.n_refs, dtype=wp.float64, device=self.device)
         shift, scale = b.angle_constants()
