@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark the compute backends on the four kernel families and on match_pair.
+"""Benchmark the compute backends on the kernel families and on match_pair.
 
 For each family and size: the median wall time per backend (numpy arrays in,
 numpy arrays out: transfers and host preparation included) and the speed-up over
@@ -9,6 +9,8 @@ plots (PNG). Extra rows, marked as baselines:
   numpy-bitparallel        a vectorised NumPy bit-parallel LCS (this script only),
                            a fairer CPU baseline than the reference's Python DP loop
 Cases whose estimated time exceeds --max-seconds are skipped and listed as such.
+The ppf section votes with point-pair tables built as match_pair builds them, from the
+fracture samples of a synthetic vase broken in two (prepared once, a few seconds).
 
     python scripts/bench_backends.py                       # all backends here, all sections
     python scripts/bench_backends.py --backends warp-cuda:0,opencl --sections lcs,nn --out bench-results
@@ -16,6 +18,7 @@ Cases whose estimated time exceeds --max-seconds are skipped and listed as such.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import platform
 import sys
@@ -30,13 +33,15 @@ from relicgpu.backends import available_backends, get_backend  # noqa: E402
 from relicgpu.backends import numpy as reference  # noqa: E402
 from relicgpu.backends.base import DeviceTiming  # noqa: E402
 
-SECTIONS = ("normals", "curvature", "lcs", "nn", "cov", "match")
+SECTIONS = ("normals", "curvature", "lcs", "nn", "cov", "ppf", "match")
 SIZES = {
     "normals": [10_000, 100_000, 1_000_000],  # faces
     "curvature": [1_000, 10_000, 100_000],  # contour points
     "lcs": [(100, 128), (1_000, 256), (10_000, 512)],  # (pairs, length)
     "nn": [10_000, 100_000, 1_000_000],  # source = target points
     "cov": [10_000, 100_000, 1_000_000],  # point pairs
+    # (model points, scene points, every third a reference); (800, 800) is match_pair's (Params.ppf_points)
+    "ppf": [(500, 450), (800, 800), (1_000, 1_200), (2_000, 2_100)],
 }
 QUICK_SIZES = {
     "normals": [10_000, 100_000],
@@ -44,6 +49,7 @@ QUICK_SIZES = {
     "lcs": [(100, 128), (400, 256)],
     "nn": [10_000, 100_000],
     "cov": [10_000, 100_000],
+    "ppf": [(300, 300)],
 }
 # The paper's Table 1: vertex counts of the two fragments of each pair.
 TABLE1_PAIRS = [(8046, 10314), (5142, 4408), (7250, 5692), (15064, 20956), (12476, 10346)]
@@ -126,6 +132,39 @@ def uniform_points(n: int, rng):
     return rng.random((n, 3)) * 10 + 100
 
 
+@functools.lru_cache(maxsize=None)
+def _prepared_pair():
+    """A synthetic vase broken in two, both pieces prepared (NumPy) with a fracture sample large
+    enough for 2,000 point-pair points, and the pair's scale."""
+    from relicgpu.params import Params
+    from relicgpu.pair.pipeline import pair_scale
+    from relicgpu.pair.prepare import prepare
+    from relicgpu.synth import generate
+
+    params = Params(icp_points=6000)
+    a, b = generate("vase", pieces=2, seed=1, faces=40_000, noise=0.0005, progress=False).fragments[:2]
+    scale = pair_scale(a, b, params)
+    return prepare(a, params, "numpy", scale=scale), prepare(b, params, "numpy", scale=scale), params, scale
+
+
+def ppf_tables(n_model: int, n_scene: int):
+    """Point-pair tables as `match_pair` builds them (`prepare._ppf_table`: weighted, pairs within
+    ppf_max_distance, the scene's normals flipped and every third point a reference), from the
+    fracture samples of a synthetic pair, with n_model and n_scene points instead of ppf_points."""
+    from relicgpu.pair.ppf import pair_table
+    from relicgpu.pair.prepare import ppf_points, ppf_weights
+
+    pa, pb, params, scale = _prepared_pair()
+    step, reach = params.ppf_distance_step * scale, params.ppf_max_distance * scale
+    pm, nm = ppf_points(pa.sample, n_model)
+    ps, ns = ppf_points(pb.sample, n_scene)
+    model = pair_table(pm, nm, step, params.ppf_angle_step_deg, max_distance=reach,
+                       weights=ppf_weights(pa.sample, n_model))
+    scene = pair_table(ps, -ns, step, params.ppf_angle_step_deg, reference_stride=3, sort=False, max_distance=reach,
+                       weights=ppf_weights(pb.sample, n_scene))
+    return model, scene
+
+
 # --- sections -------------------------------------------------------------------
 
 def run_kernels(names, sections, sizes, repeats, max_seconds, rows, log):
@@ -203,6 +242,23 @@ def run_kernels(names, sections, sizes, repeats, max_seconds, rows, log):
             s, t, w = uniform_points(n, rng), uniform_points(n, rng), rng.random(n)
             for name, be in backends.items():
                 record("cross_covariance", n, name, f"{n} pairs", lambda: be.cross_covariance(s, t, w))
+    if "ppf" in sections:
+        for n_model, n_scene in sizes["ppf"]:
+            model, scene = ppf_tables(n_model, n_scene)
+            refs = len(scene.references)
+            args = (model.start, model.ref, model.alpha, model.weight, scene.key, scene.ref, scene.alpha,
+                    scene.weight, refs, model.n_points, 30, 32)
+            votes = int(np.minimum(np.diff(model.start)[np.minimum(scene.key, len(model.start) - 2)], 32).sum())
+            case = f"{model.n_points} x {refs} refs, {votes / 1e6:.1f}M votes"
+            want = reference.ppf_votes(*args)
+            for name, be in backends.items():
+                got = be.ppf_votes(*args)  # the figures count only where the best totals agree
+                if not np.allclose(got[1], want[1], rtol=1e-5, atol=0):
+                    rows.append({"section": "ppf_votes", "size": n_model, "backend": name, "case": case,
+                                 "baseline": False, "error": "differs from the reference"})
+                    log(rows[-1])
+                    continue
+                record("ppf_votes", n_model, name, case, lambda: be.ppf_votes(*args))
 
 
 def run_match(names, repeats, max_seconds, rows, log, pairs=TABLE1_PAIRS):

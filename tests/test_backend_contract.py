@@ -36,7 +36,7 @@ def test_protocol_declares_every_kernel_function():
     assert base.Backend.__annotations__ == {"name": "str"}
     assert _methods(base.Backend) == sorted(
         ["face_normals", "edge_angles", "contour_features", "flag_matrix", "lcs_lengths", "nearest_neighbors",
-         "nearest_index", "cross_covariance", "led", "block_entropy"])
+         "nearest_index", "cross_covariance", "led", "block_entropy", "ppf_votes"])
     for fn in [getattr(base.Backend, name) for name in _methods(base.Backend)] + [base.NearestIndex.query]:
         assert "Parameters\n" in fn.__doc__ and "Returns\n" in fn.__doc__, fn.__name__  # numpydoc, with shapes
 

@@ -80,6 +80,13 @@ class _Faulty:
         cs, ct, h, wsum = ref.cross_covariance(s, t, w)
         return (cs, ct, h + 1e-6 * np.abs(h).max(), wsum) if self.family == "covariance" else (cs, ct, h, wsum)
 
+    def ppf_votes(self, *args):
+        if self.family != "ppf":
+            return ref.ppf_votes(*args)
+        rows = ref.ppf_vote_rows(*args)  # ties to the last largest cell instead of the first
+        last = rows.shape[1] - 1 - rows[:, ::-1].argmax(axis=1)
+        return last, rows.max(axis=1).astype(np.float64)
+
 
 @pytest.mark.parametrize("family", [f for f in selfcheck.FAMILIES if f != "mosaic"])
 def test_self_check_catches_a_fault_in_each_family(family):

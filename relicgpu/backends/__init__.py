@@ -3,7 +3,8 @@
 A backend is a `base.Backend`: the kernel functions of `relicgpu.backends.numpy` (the
 float64 specification) face_normals, edge_angles, contour_features, flag_matrix,
 lcs_lengths, nearest_neighbors, nearest_index (a target prepared once for many
-queries), cross_covariance, and the mosaic's led and block_entropy, plus a `name`.
+queries), cross_covariance, the mosaic's led and block_entropy, and ppf_votes (the
+coarse stage's point-pair votes), plus a `name`.
 `auto` (and the RELICGPU_BACKEND environment variable) chooses one; see `resolve`.
 
 No backend is trusted on sight: `get_backend` runs `selfcheck.run` on it once per

@@ -299,3 +299,109 @@ def choose_cell_size(extent: np.ndarray, n: int, occupied_at) -> float:
     rho1 = n / max(occupied_at(h_fine), 1)
     dim = float(np.clip(np.log(rho0 / max(rho1, 1e-9)) / np.log(h / h_fine), 1.0, 3.0))
     return float(max(h * (3.0 / rho0) ** (1.0 / dim), h_min))
+
+
+# --- point-pair-feature votes -----------------------------------------------------
+
+def _optional_weight(weight, n: int, what: str) -> np.ndarray | None:
+    if weight is None:
+        return None
+    w = np.ascontiguousarray(weight, np.float32).ravel()
+    if len(w) != n:
+        raise ValueError(f"ppf_votes: {len(w)} {what} weights for {n} pairs")
+    if not (np.isfinite(w).all() and (w >= 0).all()):
+        raise ValueError(f"ppf_votes: {what} weights must be finite and >= 0")
+    return w
+
+
+class PpfVotes:
+    """The inputs of one `ppf_votes` call, checked and in the kernels' dtypes.
+
+    start (K+2,) int64; m_ref int32, m_alpha float32, m_weight float32 or None (M,);
+    s_key int64, s_ref int32, s_alpha float32, s_weight float32 or None (S,);
+    n_refs, n_model, alpha_bins, bucket_cap ints. With `group`, the scene's pairs are
+    ordered by reference (a stable sort: each reference's votes keep their order, so a
+    row sums in the reference's order) and s_offsets (n_refs+1,) int64 bounds each
+    reference's pairs."""
+
+    def __init__(self, model_start, model_ref, model_alpha, model_weight, scene_key, scene_ref, scene_alpha,
+                 scene_weight, n_refs: int, n_model: int, alpha_bins: int, bucket_cap: int, group: bool = True):
+        self.n_refs, self.n_model = int(n_refs), int(n_model)
+        self.alpha_bins, self.bucket_cap = int(alpha_bins), int(bucket_cap)
+        if self.n_refs < 0 or self.n_model < 1 or self.alpha_bins < 1 or self.bucket_cap < 1:
+            raise ValueError("ppf_votes: n_refs >= 0, n_model, alpha_bins and bucket_cap >= 1 expected")
+        if self.n_model >= 2**24 or self.n_model * self.alpha_bins >= 2**31:
+            raise ValueError("ppf_votes: n_model below 2^24 and n_model * alpha_bins below 2^31 expected")
+        self.start = np.ascontiguousarray(model_start, np.int64).ravel()
+        self.m_ref = np.ascontiguousarray(model_ref, np.int32).ravel()
+        self.m_alpha = np.ascontiguousarray(model_alpha, np.float32).ravel()
+        m = len(self.m_ref)
+        if len(self.m_alpha) != m:
+            raise ValueError(f"ppf_votes: {len(self.m_alpha)} model angles for {m} model pairs")
+        if len(self.start) < 2 or self.start[0] < 0 or self.start[-1] > m or np.any(np.diff(self.start) < 0):
+            raise ValueError("ppf_votes: model_start must rise from >= 0 to at most the model's pair count")
+        if m and (self.m_ref.min() < 0 or self.m_ref.max() >= self.n_model):
+            raise ValueError(f"ppf_votes: model references outside 0..{self.n_model - 1}")
+        self.m_weight = _optional_weight(model_weight, m, "model")
+        self.s_key = np.ascontiguousarray(scene_key, np.int64).ravel()
+        self.s_ref = np.ascontiguousarray(scene_ref, np.int32).ravel()
+        self.s_alpha = np.ascontiguousarray(scene_alpha, np.float32).ravel()
+        s = len(self.s_key)
+        if max(m, s) >= 2**31:
+            raise ValueError("ppf_votes: at most 2^31 - 1 pairs a table")
+        if len(self.s_ref) != s or len(self.s_alpha) != s:
+            raise ValueError("ppf_votes: scene_key, scene_ref and scene_alpha differ in length")
+        if s and (self.s_key.min() < 0 or self.s_ref.min() < 0 or self.s_ref.max() >= self.n_refs):
+            raise ValueError(f"ppf_votes: negative scene keys or scene references outside 0..{self.n_refs - 1}")
+        self.s_weight = _optional_weight(scene_weight, s, "scene")
+        self.s_offsets = None
+        if group:
+            if s > 1 and np.any(self.s_ref[1:] < self.s_ref[:-1]):
+                order = np.argsort(self.s_ref, kind="stable")
+                self.s_key, self.s_ref, self.s_alpha = self.s_key[order], self.s_ref[order], self.s_alpha[order]
+                self.s_weight = None if self.s_weight is None else self.s_weight[order]
+            self.s_offsets = np.searchsorted(self.s_ref, np.arange(self.n_refs + 1)).astype(np.int64)
+
+    @property
+    def row(self) -> int:
+        """Cells of one reference's vote row (model point, angle bin)."""
+        return self.n_model * self.alpha_bins
+
+    def angle_constants(self) -> tuple[np.float32, np.float32]:
+        """The float32 shift and scale of the angle bin: floor((alpha + pi) * bins / 2pi)."""
+        return np.float32(np.pi), np.float32(self.alpha_bins / (2 * np.pi))
+
+    @property
+    def touched_width(self) -> int:
+        """Cells a thread lists as touched before it zeroes its whole row instead (an eighth);
+        its list has one slot more, a sink for the writes past a full list."""
+        return max(1, self.row // 8)
+
+    def rows_in_flight(self, wanted: int, budget_bytes: int, cell_bytes: int = 8) -> int:
+        """Threads, each with a scratch row and a touched list (a thread takes references t,
+        t+T, ...): at most `wanted`, what `budget_bytes` holds and what the reference's dense
+        (n_refs, row) float64 votes would take, at least one."""
+        per_thread = self.row * cell_bytes + 4 * (self.touched_width + 1)
+        return max(1, min(wanted, budget_bytes // per_thread, self.n_refs * self.row * 8 // per_thread))
+
+    def voting_model(self) -> tuple[np.ndarray, np.ndarray]:
+        """The model pairs that vote, bucket by bucket: (K+2,) int32 starts and (V,3) float32
+        records (model point, angle, weight: 1 where None), bucket k holding its first
+        min(found, cap) pairs or, past the cap, pairs lo + i * found // cap in order. A vote
+        then reads consecutive records instead of pairs strewn over a large bucket (a cache
+        miss each, in three arrays). The point is held as a float, exact below 2^24."""
+        found = np.diff(self.start)
+        counts = np.minimum(found, self.bucket_cap)
+        starts = np.zeros(len(self.start), np.int64)
+        np.cumsum(counts, out=starts[1:])
+        i = np.arange(int(starts[-1]), dtype=np.int64) - np.repeat(starts[:-1], counts)
+        f = np.repeat(found, counts)
+        j = np.repeat(self.start[:-1], counts) + np.where(f > self.bucket_cap, i * f // self.bucket_cap, i)
+        rec = np.empty((len(j), 3), np.float32)
+        rec[:, 0] = self.m_ref[j]
+        rec[:, 1] = self.m_alpha[j]
+        rec[:, 2] = 1.0 if self.m_weight is None else self.m_weight[j]
+        return starts.astype(np.int32), rec
+
+    def scene_weight_or_ones(self) -> np.ndarray:
+        return np.ones(len(self.s_key), np.float32) if self.s_weight is None else self.s_weight

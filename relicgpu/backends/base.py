@@ -188,6 +188,59 @@ class Backend(Protocol):
         """
         ...
 
+    # --- point-pair-feature votes -------------------------------------------------------
+
+    def ppf_votes(self, model_start: np.ndarray, model_ref: np.ndarray, model_alpha: np.ndarray,
+                  model_weight: np.ndarray | None, scene_key: np.ndarray, scene_ref: np.ndarray,
+                  scene_alpha: np.ndarray, scene_weight: np.ndarray | None, n_refs: int, n_model: int,
+                  alpha_bins: int, bucket_cap: int) -> tuple[np.ndarray, np.ndarray]:
+        """Drost's point-pair votes: each scene pair votes for (model point, angle bin) with
+        the model pairs of its feature key; per scene reference, the best cell and its total.
+
+        Scene pair s votes with the model pairs j of bucket k = min(scene_key[s], K), i.e.
+        model_start[k] <= j < model_start[k + 1] (K = len(model_start) - 2: a key past the
+        model's last is an empty bucket). A bucket of found > bucket_cap pairs votes with
+        bucket_cap of them, lo + i * found // bucket_cap for i < bucket_cap (lo its first).
+        The vote goes to row scene_ref[s], cell model_ref[j] * alpha_bins + bin, where bin =
+        floor((model_alpha[j] - scene_alpha[s] + pi) * alpha_bins / 2pi) mod alpha_bins in
+        float32 arithmetic, and weighs model_weight[j] * scene_weight[s] (a missing table
+        weight counts 1).
+
+        Parameters
+        ----------
+        model_start : (K + 2,) int
+            Non-decreasing, from >= 0 to at most M: the model table's first pair of each key.
+        model_ref : (M,) int
+            Model point of each model pair, in [0, n_model).
+        model_alpha : (M,) float32
+            Angle of each model pair about the reference normal, radians in [-pi, pi].
+        model_weight : (M,) float or None
+            Finite, >= 0; None: every pair weighs 1.
+        scene_key : (S,) int
+            Feature key of each scene pair, >= 0.
+        scene_ref : (S,) int
+            Scene reference (row) of each scene pair, in [0, n_refs); need not be sorted.
+        scene_alpha : (S,) float32
+        scene_weight : (S,) float or None
+            Finite, >= 0; None: every pair weighs 1.
+        n_refs : int
+            Scene references (rows).
+        n_model : int
+            Model points; a row has n_model * alpha_bins cells.
+        alpha_bins : int
+        bucket_cap : int
+            At least 1.
+
+        Returns
+        -------
+        best : (n_refs,) int64
+            Per row the first cell of the largest total (0 for a row without votes).
+        votes : (n_refs,) float64
+            That total: an exact count where both tables are unweighted; float64 sums in
+            the votes' order from the reference (a device without doubles sums in float32).
+        """
+        ...
+
     # --- the mosaic's kernels ----------------------------------------------------------
 
     def led(self, image: np.ndarray, half: int) -> np.ndarray:

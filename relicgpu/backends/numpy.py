@@ -11,6 +11,8 @@ import os
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ._prep import PpfVotes
+
 name = "numpy"
 
 
@@ -214,6 +216,55 @@ def cross_covariance(source: np.ndarray, target: np.ndarray, weights: np.ndarray
     ct = (w[:, None] * t).sum(0) / wsum
     h = ((s - cs) * w[:, None]).T @ (t - ct)
     return cs, ct, h, wsum
+
+
+# --- point-pair-feature votes ------------------------------------------------
+
+def ppf_votes(model_start, model_ref, model_alpha, model_weight, scene_key, scene_ref, scene_alpha, scene_weight,
+              n_refs: int, n_model: int, alpha_bins: int, bucket_cap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per scene reference, the first largest cell of its vote row (`ppf_vote_rows`) and its
+    total: (n_refs,) int64 cells (model point * alpha_bins + angle bin), (n_refs,) float64."""
+    votes = ppf_vote_rows(model_start, model_ref, model_alpha, model_weight, scene_key, scene_ref, scene_alpha,
+                          scene_weight, n_refs, n_model, alpha_bins, bucket_cap)
+    best = votes.argmax(axis=1)
+    return best.astype(np.int64), votes[np.arange(len(votes)), best].astype(np.float64)
+
+
+def ppf_vote_rows(model_start, model_ref, model_alpha, model_weight, scene_key, scene_ref, scene_alpha,
+                  scene_weight, n_refs: int, n_model: int, alpha_bins: int, bucket_cap: int) -> np.ndarray:
+    """Drost's votes as a dense (n_refs, n_model * alpha_bins) array: every scene pair (key,
+    ref, alpha) votes for (model point, angle bin) with the model pairs of its key,
+    model_start[key]:model_start[key + 1] (a key past the last is an empty bucket). A bucket of
+    `found` > bucket_cap pairs votes with bucket_cap of them, lo + i * found // bucket_cap for
+    i < bucket_cap. The bin of a vote is floor((model_alpha - scene_alpha + pi) * alpha_bins /
+    2pi) mod alpha_bins, in float32; its weight the model pair's times the scene pair's (1 where
+    None). Summed by bincount, in vote order: int64 counts where neither table is weighted."""
+    b = PpfVotes(model_start, model_ref, model_alpha, model_weight, scene_key, scene_ref, scene_alpha, scene_weight,
+                 n_refs, n_model, alpha_bins, bucket_cap, group=False)
+    cap = b.bucket_cap
+    key = np.minimum(b.s_key, len(b.start) - 2)
+    lo = b.start[key]
+    found = b.start[key + 1] - lo
+    counts = np.minimum(found, cap)
+    total = int(counts.sum())
+    first = np.cumsum(counts) - counts  # each scene pair's first vote
+    match = np.arange(total, dtype=np.int64) + np.repeat(lo - first, counts)
+    capped = np.flatnonzero(found > cap)
+    if len(capped):
+        spread = np.arange(cap)
+        match[first[capped][:, None] + spread] = lo[capped][:, None] + spread * found[capped][:, None] // cap
+    shift, scale = b.angle_constants()
+    alpha = b.m_alpha[match] - np.repeat(b.s_alpha, counts)
+    abin = np.floor((alpha + shift) * scale).astype(np.int64) % b.alpha_bins
+    cell = (np.repeat(b.s_ref, counts).astype(np.int64) * b.n_model + b.m_ref[match]) * b.alpha_bins + abin
+    weight = None
+    if b.m_weight is not None or b.s_weight is not None:
+        weight = np.ones(total)
+        if b.m_weight is not None:
+            weight *= b.m_weight[match]
+        if b.s_weight is not None:
+            weight *= np.repeat(b.s_weight, counts)
+    return np.bincount(cell, weight, minlength=b.n_refs * b.row).reshape(b.n_refs, b.row)
 
 
 # --- the mosaic's kernels: LED box mean and block entropy ---------------------

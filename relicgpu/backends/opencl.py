@@ -20,14 +20,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ._prep import (LcsBatch, centred_float32, check_edge_faces, check_faces, choose_cell_size, flag_intervals,
-                    grid_dims, nn_source, nn_target)
+from ._prep import (LcsBatch, PpfVotes, centred_float32, check_edge_faces, check_faces, choose_cell_size,
+                    flag_intervals, grid_dims, nn_source, nn_target)
 from .pocl import repair_pocl_cpu_name
 from .selfcheck import check_family
 
 _REDUCE_THREADS = {"cpu": 256, "gpu": 8192}
 _LOCAL_2D = (16, 4)  # the work-group shape of the image kernels
 _BRUTE_PAIRS = {"cpu": 4_000_000, "gpu": 50_000_000}
+# ppf_votes: work-items (each a scratch row) per compute unit, work-group size, scratch bytes
+_PPF_ROWS_PER_UNIT = {"cpu": 4, "gpu": 1 << 12}
+_PPF_LOCAL = {"cpu": 1, "gpu": 64}
+_PPF_SCRATCH_BYTES = {"cpu": 1 << 28, "gpu": 1 << 30}
 
 
 
@@ -309,6 +313,33 @@ class OpenCLBackend:
                       *[r(x) for x in ct], np.int32(n), np.int32(threads), part)
             h = self._from_device(part, (threads, 9), r).astype(np.float64).sum(0).reshape(3, 3)
         return cs, ct, h, wsum
+
+    # --- point-pair-feature votes ---------------------------------------------------
+
+    def ppf_votes(self, model_start, model_ref, model_alpha, model_weight, scene_key, scene_ref, scene_alpha,
+                  scene_weight, n_refs: int, n_model: int, alpha_bins: int, bucket_cap: int):
+        b = PpfVotes(model_start, model_ref, model_alpha, model_weight, scene_key, scene_ref, scene_alpha,
+                     scene_weight, n_refs, n_model, alpha_bins, bucket_cap)
+        if b.n_refs == 0:
+            return np.zeros(0, np.int64), np.zeros(0)
+        r = self.real
+        size = np.dtype(r).itemsize
+        threads = b.rows_in_flight(_PPF_ROWS_PER_UNIT[self.kind] * self.device.max_compute_units,
+                                   _PPF_SCRATCH_BYTES[self.kind], size)
+        shift, scale = b.angle_constants()
+        start, records = b.voting_model()
+        with self._lock:
+            rows = self._empty(threads * b.row * size)
+            self.cl.enqueue_fill_buffer(self.queue, rows, r(0), 0, threads * b.row * size)
+            cell, votes = self._empty(4 * b.n_refs), self._empty(size * b.n_refs)
+            self._run("ppf.cl", "ppf_votes", threads, self._to_device(start), np.int64(len(start) - 2),
+                      self._to_device(records), self._to_device(b.s_offsets.astype(np.int32)),
+                      self._to_device(b.s_key), self._to_device(b.s_alpha), self._to_device(b.scene_weight_or_ones()),
+                      np.int32(b.n_refs), np.int32(b.alpha_bins), shift, scale, np.int32(threads), np.int32(b.row),
+                      rows, np.int32(b.touched_width), self._empty(4 * threads * (b.touched_width + 1)), cell, votes,
+                      local=_PPF_LOCAL[self.kind])
+            best = self._from_device(cell, b.n_refs, np.int32).astype(np.int64)
+            return best, self._from_device(votes, b.n_refs, r).astype(np.float64)
 
     # --- the mosaic's kernels -----------------------------------------------------
 

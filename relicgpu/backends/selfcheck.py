@@ -5,8 +5,9 @@ folded 16-wide float compares wrongly for CPUs without AVX-512: LCS lengths off 
 49 of 64 pairs). So before a backend is used in a process, `run(backend)` feeds
 each family small inputs chosen to reach the places where kernels go wrong (LCS
 sequences crossing 64-column words, nearest-neighbour ties and exact hits, faces of
-zero area) and compares with `relicgpu.backends.numpy` under the tolerances the
-kernel tests use. It takes well under a second once the kernels are compiled.
+zero area, point-pair buckets past their cap and angles on bin edges) and compares
+with `relicgpu.backends.numpy` under the tolerances the kernel tests use. It takes
+well under a second once the kernels are compiled.
 
 `run` returns {family: None or what disagreed}; `relicgpu.backends.get_backend`
 refuses a backend with any disagreement.
@@ -21,7 +22,7 @@ import relicgpu.backends.numpy as ref
 
 from ..topology import mesh_topology
 
-FAMILIES = ("normals", "curvature", "flags", "lcs", "nearest", "covariance", "mosaic")
+FAMILIES = ("normals", "curvature", "flags", "lcs", "nearest", "covariance", "mosaic", "ppf")
 
 LCS_LENGTHS = (1, 63, 64, 65, 127, 129, 200)
 LCS_EPS = 0.1
@@ -193,8 +194,71 @@ def _check_mosaic(be) -> str | None:
     return "block entropy: " + bad if bad else None
 
 
+@functools.lru_cache(maxsize=None)
+def _ppf_case():
+    """Point-pair tables of few points and bins (ties in every row): empty buckets, buckets
+    past the cap, scene keys past the model's last (one far past 2^31), angles on bin edges,
+    scene references out of order and one without pairs, weights with zeros. Returns the
+    arguments of ppf_votes but the weights, the two weight arrays, and the cap."""
+    rng = np.random.default_rng(6)
+    n_model, n_refs, alpha_bins, cap, keys = 7, 9, 5, 6, 12
+    sizes = np.array([0, 3, 40, 1, 0, 6, 7, 13, 2, 0, 25, 4, 0])[:keys + 1]
+    start = np.concatenate([[0], np.cumsum(sizes)])
+    m = int(start[-1])
+    m_ref = rng.integers(0, n_model, m).astype(np.int32)
+    edges = (np.arange(-alpha_bins, alpha_bins + 1) * (2 * np.pi / alpha_bins)).astype(np.float32)
+    m_alpha = np.where(rng.random(m) < 0.3, rng.choice(edges, m), rng.uniform(-np.pi, np.pi, m)).astype(np.float32)
+    s_ref = rng.permutation(np.repeat(np.arange(n_refs - 1), 14)).astype(np.int32)  # reference 8 has none
+    s = len(s_ref)
+    s_key = rng.integers(0, keys + 4, s).astype(np.int64)
+    s_key[::17] = 2**40
+    s_alpha = np.where(rng.random(s) < 0.3, 0.0, rng.uniform(-np.pi, np.pi, s)).astype(np.float32)
+    m_weight = rng.random(m).astype(np.float32)
+    m_weight[::3] = 0
+    s_weight = rng.random(s).astype(np.float32)
+    s_weight[s_ref == 2] = 0  # a row of zero totals
+    return (start, m_ref, m_alpha, s_key, s_ref, s_alpha, n_refs, n_model, alpha_bins), m_weight, s_weight, cap
+
+
+@functools.lru_cache(maxsize=None)
+def _ppf_reuse_case():
+    """References that touch exactly as many cells as a device's list of touched cells holds (8
+    of a 64-cell row), or more, each followed (in one thread's turn, 8 references on) by one
+    that ties with a cell left over if the row was not cleaned. Bucket k votes for cell k."""
+    start = np.arange(65)
+    m_ref, m_alpha = np.arange(64) // 8, (-np.pi + (np.arange(64) % 8 + 0.5) * np.pi / 4).astype(np.float32)
+    keys = [g for g in ([*range(8), 0, 1, 2], [7, 63, 63], [*range(21)], [5, 40, 40]) for _ in range(8)]
+    s_key = np.concatenate(keys)
+    s_ref = np.repeat(np.arange(32), [len(k) for k in keys])
+    return start, m_ref, m_alpha, s_key, s_ref, np.zeros(len(s_key), np.float32), 32, 8, 8
+
+
+def _check_ppf(be) -> str | None:
+    (start, m_ref, m_alpha, s_key, s_ref, s_alpha, n_refs, n_model, bins), m_w, s_w, cap = _ppf_case()
+    reuse = _ppf_reuse_case()
+    cases = [(label, (start, m_ref, m_alpha, mw, s_key, s_ref, s_alpha, sw, n_refs, n_model, bins, cap))
+             for label, mw, sw in (("unweighted", None, None), ("weighted", m_w, s_w), ("model-weighted", m_w, None))]
+    cases.append(("rows reused", (*reuse[:3], None, *reuse[3:6], None, *reuse[6:], 4)))
+    for label, args in cases:
+        got, total = (np.asarray(x) for x in be.ppf_votes(*args))
+        rows = ref.ppf_vote_rows(*args)
+        want, want_total = rows.argmax(axis=1), rows.max(axis=1)
+        if got.shape != want.shape or got.min() < 0 or got.max() >= rows.shape[1]:
+            return f"ppf_votes ({label}): cells out of range"
+        if args[3] is None and args[7] is None:
+            bad = _disagreement(got == want, got, want) or _disagreement(total == want_total, total, want_total)
+        else:  # float sums: the chosen cell must hold the row's largest total (ties may go either way)
+            tol = 1e-5 * (np.abs(want_total) + 1e-6)
+            chosen = rows[np.arange(len(rows)), got]
+            bad = (_disagreement(np.abs(total - want_total) <= tol, total, want_total)
+                   or _disagreement(np.abs(chosen - want_total) <= tol, chosen, want_total))
+        if bad:
+            return f"ppf_votes ({label}): " + bad
+    return None
+
+
 _CHECKS = {"normals": _check_normals, "curvature": _check_curvature, "flags": _check_flags, "lcs": _check_lcs,
-           "nearest": _check_nearest, "covariance": _check_covariance, "mosaic": _check_mosaic}
+           "nearest": _check_nearest, "covariance": _check_covariance, "mosaic": _check_mosaic, "ppf": _check_ppf}
 
 
 def check_family(backend, family: str) -> str | None:

@@ -13,13 +13,16 @@ import threading
 
 import numpy as np
 
-from ._prep import (LcsBatch, centred_float32, check_edge_faces, check_faces, choose_cell_size, flag_intervals,
-                    grid_dims, nn_source, nn_target, parallel_copy)
+from ._prep import (LcsBatch, PpfVotes, centred_float32, check_edge_faces, check_faces, choose_cell_size,
+                    flag_intervals, grid_dims, nn_source, nn_target, parallel_copy)
 
 # Warp's CPU device runs a launch on one thread; brute force beats building a
 # grid below these many (source x target) pairs.
 _BRUTE_PAIRS = {"cpu": 2_000_000, "cuda": 50_000_000}
 _REDUCE_THREADS = {"cpu": 64, "cuda": 8192}
+# ppf_votes: scratch rows (one per thread); the CPU device runs a launch on one thread
+_PPF_ROWS = {"cpu": 1, "cuda": 1 << 16}
+_PPF_SCRATCH_BYTES = {"cpu": 1 << 28, "cuda": 1 << 30}
 
 
 def _quiet_warp(wp) -> None:
@@ -42,10 +45,10 @@ class WarpBackend:
         self.kind = "cpu" if dev.is_cpu else "cuda"
         self.name = "warp-cpu" if dev.is_cpu else f"warp-cuda:{dev.ordinal}"
         self.device_name = dev.name if dev.is_cuda else "CPU (one thread per launch)"
-        from relicgpu.kernels.warp import curvature, icp, lcs, mosaic, normals
+        from relicgpu.kernels.warp import curvature, icp, lcs, mosaic, normals, ppf
 
         self._k_normals, self._k_curv, self._k_lcs, self._k_icp = normals, curvature, lcs, icp
-        self._k_mosaic = mosaic
+        self._k_mosaic, self._k_ppf = mosaic, ppf
         self._staging: dict[str, object] = {}  # pinned host buffers for large uploads (CUDA)
         self._staging_lock = threading.Lock()
 
@@ -213,6 +216,29 @@ class WarpBackend:
                      [s_d, t_d, w_d, wp.vec3d(*cs), wp.vec3d(*ct), n, part])
         h = part.numpy().sum(0).reshape(3, 3)
         return cs, ct, h, wsum
+
+    # --- point-pair-feature votes -------------------------------------------------
+
+    def ppf_votes(self, model_start, model_ref, model_alpha, model_weight, scene_key, scene_ref, scene_alpha,
+                  scene_weight, n_refs: int, n_model: int, alpha_bins: int, bucket_cap: int):
+        wp = self.wp
+        b = PpfVotes(model_start, model_ref, model_alpha, model_weight, scene_key, scene_ref, scene_alpha,
+                     scene_weight, n_refs, n_model, alpha_bins, bucket_cap)
+        if b.n_refs == 0:
+            return np.zeros(0, np.int64), np.zeros(0)
+        threads = b.rows_in_flight(_PPF_ROWS[self.kind], _PPF_SCRATCH_BYTES[self.kind])
+        rows = wp.zeros((threads, b.row), dtype=wp.float64, device=self.device)
+        touched = wp.empty((threads, b.touched_width + 1), dtype=wp.int32, device=self.device)
+        cell = wp.empty(b.n_refs, dtype=wp.int32, device=self.device)
+        votes = wp.empty(b.n_refs, dtype=wp.float64, device=self.device)
+        shift, scale = b.angle_constants()
+        start, records = b.voting_model()
+        self._launch(self._k_ppf.ppf_votes, threads, [
+            self._array(start, wp.int32), len(start) - 2, self._array(records, wp.vec3),
+            self._array(b.s_offsets.astype(np.int32), wp.int32), self._array(b.s_key, wp.int64),
+            self._array(b.s_alpha, wp.float32), self._array(b.scene_weight_or_ones(), wp.float32), b.n_refs,
+            b.alpha_bins, float(shift), float(scale), threads, rows, touched, cell, votes])
+        return cell.numpy().astype(np.int64), votes.numpy()
 
     # --- the mosaic's kernels ----------------------------------------------------
 

@@ -259,7 +259,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
                 for i, j, v in result:
                     support[i, j] = support[j, i] = v
 
-            eng.map(_ppf_screen_job, [Job((pairs, needs, params, scale), needs)
+            eng.map(_ppf_screen_job, [Job((pairs, needs, params, scale, backend_name), needs)
                                       for pairs, needs in _screen_blocks(n, eng.parallelism)],
                     {i: prepared[i] for i in range(n)}, took_support)
             cache.put_array("screen-ppf", support, *hashes)

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..backends import resolve
 from ..params import Params
 from ..pair.prepare import ppf_points
 from ..pair.ppf import pair_table, vote_poses
@@ -227,11 +228,12 @@ def screen_tables(sample, params: Params, scale: float, n_points: int = SCREEN_P
             pair_table(pts, -nrm, step, params.ppf_angle_step_deg, reference_stride=3, sort=False))
 
 
-def ppf_support(pairs, tables: dict, params: Params, scale: float) -> list[tuple[int, int, float]]:
-    """(i, j, support of the best pose cluster carrying j onto i) for each pair."""
+def ppf_support(pairs, tables: dict, params: Params, scale: float, backend=None) -> list[tuple[int, int, float]]:
+    """(i, j, support of the best pose cluster carrying j onto i) for each pair (votes on `backend`,
+    None: the NumPy reference)."""
     out = []
     for i, j in pairs:
-        votes = vote_poses(tables[i][0], tables[j][1], 2 * params.ppf_distance_step * scale, keep=1)
+        votes = vote_poses(tables[i][0], tables[j][1], 2 * params.ppf_distance_step * scale, keep=1, backend=backend)
         out.append((i, j, float(votes[0][1]) if votes else 0.0))
     return out
 
@@ -259,6 +261,6 @@ def _screen_blocks(n: int, parallelism: int) -> list[tuple[list[tuple[int, int]]
 
 
 def _ppf_screen_job(payload, *prepared):
-    pairs, needs, params, scale = payload
+    pairs, needs, params, scale, backend_name = payload
     tables = {k: screen_tables(p.sample, params, scale) for k, p in zip(needs, prepared)}
-    return ppf_support(pairs, tables, params, scale)
+    return ppf_support(pairs, tables, params, scale, resolve(backend_name))

@@ -278,7 +278,8 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
         # point-pair-feature votes: finds contacts that cover only part of each fracture surface
         model = _ppf_table(pa.sample, params, scale, "model")
         scene = _ppf_table(pb.sample, params, scale, "scene")
-        for pose, votes in vote_poses(model, scene, 2 * params.ppf_distance_step * scale, keep=params.ppf_starts):
+        for pose, votes in vote_poses(model, scene, 2 * params.ppf_distance_step * scale, keep=params.ppf_starts,
+                                      backend=be):
             starts.append(pose)
             origins.append(("ppf", -1, -1, np.zeros((0, 2), np.int64)))
     if heads is None:

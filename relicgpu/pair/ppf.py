@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..backends import numpy as numpy_backend
+
 
 def smoothed_normals(points: np.ndarray, normals: np.ndarray, radius: float, k: int = 32) -> np.ndarray:
     """Normals of the local plane fit (PCA of up to k neighbours within `radius`), oriented like
@@ -135,38 +137,24 @@ def pair_table(points: np.ndarray, normals: np.ndarray, dist_step: float, angle_
 
 
 def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alpha_bins: int = 30, keep: int = 24,
-               bucket_cap: int = 32, cluster_angle_deg: float = 12.0) -> list[tuple[np.ndarray, float]]:
+               bucket_cap: int = 32, cluster_angle_deg: float = 12.0, backend=None) -> list[tuple[np.ndarray, float]]:
     """Poses carrying the scene's points onto the model's, from Drost's votes: the best cell of
     each scene reference gives a pose; up to `keep` of them, most supported first, with their
     support (the votes of all poses within cluster_distance / cluster_angle_deg of them).
     The model table must be sorted (its `start`); it has every point as a reference. Where the
-    tables carry pair weights a vote weighs the model pair's times the scene pair's."""
+    tables carry pair weights a vote weighs the model pair's times the scene pair's. The votes
+    run on `backend` (`Backend.ppf_votes`; None: the NumPy reference); the clustering on the host.
+
+    A feature shared by many pairs (a flat stretch) says little and would flood the votes: each
+    scene pair votes with at most `bucket_cap` of its model pairs, spread over the bucket."""
     na, refs = model.n_points, scene.references
     if na < 3 or scene.n_points < 3 or len(model.key) == 0 or len(scene.key) == 0:
         return []
-    key = np.minimum(scene.key, len(model.start) - 2)  # past the model's last key: an empty bucket
-    lo = model.start[key]
-    found = model.start[key + 1] - lo
-    # A feature shared by many pairs (a flat stretch) says little and would flood the votes:
-    # each scene pair votes with at most `bucket_cap` of its model pairs, spread over the bucket.
-    counts = np.minimum(found, bucket_cap)
-    total = int(counts.sum())
-    if total == 0:
+    be = numpy_backend if backend is None else backend
+    best, best_votes = be.ppf_votes(model.start, model.ref, model.alpha, model.weight, scene.key, scene.ref,
+                                    scene.alpha, scene.weight, len(refs), na, alpha_bins, bucket_cap)
+    if not np.any(best_votes > 0):
         return []
-    first = np.cumsum(counts) - counts  # each scene pair's first vote
-    match = np.arange(total, dtype=np.int64) + np.repeat(lo - first, counts)
-    capped = np.flatnonzero(found > bucket_cap)
-    if len(capped):
-        spread = np.arange(bucket_cap)
-        match[first[capped][:, None] + spread] = lo[capped][:, None] + spread * found[capped][:, None] // bucket_cap
-    alpha = model.alpha[match] - np.repeat(scene.alpha, counts)
-    abin = np.floor((alpha + np.float32(np.pi)) * np.float32(alpha_bins / (2 * np.pi))).astype(np.int64) % alpha_bins
-    cell = (np.repeat(scene.ref, counts).astype(np.int64) * na + model.ref[match]) * alpha_bins + abin
-    votes = np.bincount(cell, _vote_weights(model, scene, match, counts),
-                        minlength=len(refs) * na * alpha_bins).reshape(len(refs), na * alpha_bins)
-
-    best = votes.argmax(axis=1)
-    best_votes = votes[np.arange(len(refs)), best]
     m_ref, m_alpha = best // alpha_bins, best % alpha_bins
     angle = (m_alpha + 0.5) / alpha_bins * 2 * np.pi - np.pi
     c, sn = np.cos(angle), np.sin(angle)
@@ -190,19 +178,6 @@ def vote_poses(model: PairTable, scene: PairTable, cluster_distance: float, alph
     return out
 
 
-def _vote_weights(model: PairTable, scene: PairTable, match: np.ndarray, counts: np.ndarray) -> np.ndarray | None:
-    """(V,) weight of each vote (model pair `match`, scene pairs repeated `counts` times): the
-    product of the two pairs' weights; None where neither table is weighted (every vote 1)."""
-    if model.weight is None and scene.weight is None:
-        return None
-    w = np.ones(len(match))
-    if model.weight is not None:
-        w *= model.weight[match]
-    if scene.weight is not None:
-        w *= np.repeat(scene.weight, counts)
-    return w
-
-
 def _similar(poses: np.ndarray, centre: np.ndarray, distance: float, angle_deg: float) -> np.ndarray:
     """(N,N) bool: poses that turn by less than angle_deg relative to each other and put `centre`
     within `distance` of each other."""
@@ -215,11 +190,12 @@ def _similar(poses: np.ndarray, centre: np.ndarray, distance: float, angle_deg: 
 
 def ppf_poses(a_points: np.ndarray, a_normals: np.ndarray, b_points: np.ndarray, b_normals: np.ndarray,
               dist_step: float, angle_step_deg: float = 12.0, alpha_bins: int = 30, reference_stride: int = 3,
-              keep: int = 24, bucket_cap: int = 32) -> list[tuple[np.ndarray, float]]:
+              keep: int = 24, bucket_cap: int = 32, backend=None) -> list[tuple[np.ndarray, float]]:
     """Poses carrying b onto a where b's surface (normals as given, i.e. already flipped for a
-    mating surface) lies on a's; up to `keep`, most votes first, with their vote counts."""
+    mating surface) lies on a's; up to `keep`, most votes first, with their vote counts (votes
+    on `backend`, as `vote_poses`)."""
     if len(a_points) < 3 or len(b_points) < 3:
         return []
     model = pair_table(a_points, a_normals, dist_step, angle_step_deg)
     scene = pair_table(b_points, b_normals, dist_step, angle_step_deg, reference_stride, sort=False)
-    return vote_poses(model, scene, 2 * dist_step, alpha_bins, keep, bucket_cap)
+    return vote_poses(model, scene, 2 * dist_step, alpha_bins, keep, bucket_cap, backend=backend)
