@@ -121,8 +121,11 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
                     not result.accepted or (not same_pose(result.transform, second.transform,
                                                           params.contact_distance * scale)
                                             and rims(second.transform) > rims(result.transform))):
+                why = "" if not result.accepted else (
+                    f"; its rims agree {rims(second.transform):.2f}, the first reading's fit "
+                    f"{rims(result.transform):.2f}")
                 return replace(second, score=SECOND_READING_SCORE * second.score,
-                               reason=f"{second.reason} ({params.second_segmentation} segmentation)")
+                               reason=f"{second.reason} ({params.second_segmentation} segmentation{why})")
     if result.accepted or heads is not None or pa.strict_sample is None or pb.strict_sample is None:
         return result
     result = _match_strict(pa, pb, params, be, scale, timings, result)
