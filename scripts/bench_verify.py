@@ -104,8 +104,9 @@ def _cases(args):
 def remeshed_pair(shape: str, seed: int, n_points: int = 40000, noise: float = 0.001):
     """A synth two-piece object and its pieces sampled (n_points uniform on the surface, each
     moved by up to noise x the piece's diagonal in a random direction) and meshed again by
-    `pointcloud.triangulate`, as tests/test_pointcloud.py's remeshed pairs: a scan reconstructed
-    by the project's own mesher (returns the SynthResult and the two remeshed Fragments)."""
+    `triangulate.mesh_for_matching`, as tests/test_pointcloud.py's remeshed pairs: a scan reconstructed
+    by the project's own mesher as load_fragment meshes it (returns the SynthResult and the two
+    remeshed Fragments)."""
     import trimesh
 
     from relicgpu.cloud import triangulate as pc
@@ -121,7 +122,7 @@ def remeshed_pair(shape: str, seed: int, n_points: int = 40000, noise: float = 0
         d = rng.normal(size=p.shape)
         d /= np.linalg.norm(d, axis=1)[:, None]
         p = p + d * rng.uniform(0.0, noise * float(np.linalg.norm(mesh.extents)), (len(p), 1))
-        res = pc.triangulate(p, max_points=pc.MATCH_POINTS)
+        res = pc.mesh_for_matching(p)  # as load_fragment meshes a cloud
         out.append(Fragment(frag.name, res.vertices, res.faces, None, res.notes))
     return result, out[0], out[1]
 

@@ -336,6 +336,18 @@ def test_thinning_keeps_large_clouds_under_max_points():
     assert np.abs(np.linalg.norm(res.vertices, axis=1) - 1).max() < 0.01 * 2 * np.sqrt(3)
 
 
+def test_decimate_keeps_a_closed_surface_within_its_tolerance():
+    from relicgpu.cloud.refine import closed_manifold_fault, decimate
+
+    sphere = trimesh.creation.icosphere(5)  # 20,480 faces
+    v, f, tolerance = decimate(sphere.vertices + 1000.0, sphere.faces, 3000)  # far from the origin
+    assert closed_manifold_fault(v, f) is None
+    assert 1000 < len(f) <= 3000 and 0 < tolerance < 0.05
+    assert np.abs(np.linalg.norm(v - 1000.0, axis=1) - 1).max() <= tolerance + 1e-4
+    assert decimate(sphere.vertices, sphere.faces, 30000)[1].shape == sphere.faces.shape  # small enough
+    assert decimate(sphere.vertices, sphere.faces[:-1], 3000) is None  # open: not a closed manifold
+
+
 def test_points_far_from_the_body_are_left_out():
     pts, _ = sphere_points(15000)
     stray = np.array([[3.0, 0.0, 0.0], [3.01, 0.0, 0.0], [0.0, -4.0, 0.5]])
@@ -357,6 +369,9 @@ def test_mesh_command_writes_a_closed_mesh_beside_the_cloud(tmp_path, capsys):
     frag = load_fragment(out)
     assert is_watertight(frag.faces) and count_bodies(frag.vertices, frag.faces) == 1
     assert "faces from 8000 points" in capsys.readouterr().out
+    assert main(["mesh", str(cloud), "-o", str(out), "--faces", "4000", "--quiet"]) == 0  # decimated
+    few = load_fragment(out)
+    assert len(few.faces) <= 4000 and is_watertight(few.faces) and count_bodies(few.vertices, few.faces) == 1
     assert main(["mesh", str(cloud), "--quiet"]) == 0  # default output name
     assert (tmp_path / "scan_mesh.ply").exists()
     assert main(["mesh", str(cloud), "-o", str(cloud)]) == 2
@@ -384,19 +399,36 @@ needs_pipeline = pytest.mark.skipif(not _have("relicgpu.pair.pipeline", "match_p
                                     reason="relicgpu.pair.pipeline.match_pair is not installed yet")
 
 
+@needs_synth
+def test_a_dense_cloud_of_a_fragment_loads_within_one_percent_of_its_size(tmp_path):
+    """Issue 15: 60,000 points, noise 0.05% of the size; meshed dense and decimated. Measured: 0.80%
+    of the largest side, 1.36% when the cloud was thinned before meshing."""
+    from relicgpu import synth
+
+    source = synth.generate("torso", pieces=2, seed=0, progress=False).fragments[0].to_trimesh()
+    side = float(source.extents.max())
+    pts, _ = trimesh.sample.sample_surface(source, 60000, seed=1)
+    pts = pts + np.random.default_rng(2).normal(size=pts.shape) * 0.0005 * side
+    np.save(tmp_path / "torso.npy", pts)
+    frag = load_fragment(tmp_path / "torso.npy")
+    assert len(frag.faces) <= pc.MATCH_FACES and any("decimated" in n for n in frag.notes), frag.notes
+    assert_closed_outward_one_body(frag.vertices, frag.faces)
+    assert hausdorff(frag.to_trimesh(), source, n=20000) < 0.01 * side
+
+
 _remeshed: dict = {}
 
 
-def _remeshed_pair(shape, seed, n_points=40000, max_points=pc.MATCH_POINTS):
+def _remeshed_pair(shape, seed, n_points=40000):
     """A synthetic broken object, and its two fragments sampled (n_points, noise up to 0.1% of size)
-    and meshed again (thinned to max_points, as load_fragment does)."""
-    key = (shape, seed, n_points, max_points)
+    and meshed again as load_fragment does (`triangulate.mesh_for_matching`)."""
+    key = (shape, seed, n_points)
     if key not in _remeshed:
         _remeshed[key] = _make_remeshed_pair(*key)
     return _remeshed[key]
 
 
-def _make_remeshed_pair(shape, seed, n_points, max_points):
+def _make_remeshed_pair(shape, seed, n_points):
     from relicgpu import synth
     from relicgpu.io.fragment import Fragment
 
@@ -404,7 +436,7 @@ def _make_remeshed_pair(shape, seed, n_points, max_points):
     remeshed = []
     for i, frag in enumerate(result.fragments):
         pts = surface_points(frag.to_trimesh(), n_points, seed=10 + i, noise=0.001)
-        res = pc.triangulate(pts, max_points=max_points)
+        res = pc.mesh_for_matching(pts)
         remeshed.append(Fragment(frag.name, res.vertices, res.faces, None, res.notes))
     return result, remeshed
 
@@ -425,7 +457,12 @@ def _check_issue(shape, seed):
     m = match_pair(a, b, backend="numpy")
     assert m.accepted, m.reason
     assert _angle_deg(m.transform[:3, :3].T @ truth[:3, :3]) < 2.0
-    assert np.linalg.norm(m.transform[:3, 3] - truth[:3, 3]) < 0.02 * max(a.size, b.size)
+    # b's own vertices within 1% of its size (RMS) of their true place: a translation alone
+    # would grow with the distance of the fragment from its origin
+    v = result.fragments[1].vertices
+    rms = np.sqrt(np.mean(np.sum((v @ (m.transform[:3, :3] - truth[:3, :3]).T + m.transform[:3, 3] - truth[:3, 3]) ** 2,
+                                 axis=1)))
+    assert rms < 0.01 * result.fragments[1].size, rms / result.fragments[1].size
 
 
 @needs_synth

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +57,7 @@ from ..io.files import ensure_not_input, write_mesh
 from ..io.meshes import MESH_SUFFIXES
 from ..io.fragment import Fragment, fragment_from_arrays, FragmentError
 from .points import _median_spacing, choose_voxel, cloud_fragment, voxel_thin
-from .refine import refine_surface
+from .refine import closed_manifold_fault, decimate, refine_surface
 from .tets import _boundary, _largest_body, _OUT_FACES, _outside_by_flood, _surface, _Tets
 
 # Qhull takes about 6 s per 200k surface points on the project's CPU: 400k
@@ -82,10 +82,15 @@ SMOOTH_ROUNDS = 3
 # Copies of a point where the surface touches itself move this fraction of the way
 # to the centre of their own ring of neighbours.
 SPLIT_NUDGE = 0.1
-# load_fragment thins a cloud to this many points before meshing: the density (about 20k
-# faces per fragment) at which the matcher's segmentation was measured to work (see
-# tests/test_pointcloud.py); `relicgpu mesh` keeps MAX_POINTS.
-MATCH_POINTS = 12_000
+# load_fragment meshes a cloud at up to DENSE_POINTS points, then decimates the mesh to
+# MATCH_FACES: the density at which the matcher's segmentation was measured to work (see
+# tests/test_pointcloud.py). Thinning the cloud to MATCH_POINTS before meshing (the fallback) costs
+# accuracy: synth torso pieces, 60,000 points, Gaussian noise 0.05% of the largest side, came within
+# 0.82-1.40% of that side of their source (Hausdorff) that way, 0.71-0.80% meshed dense and
+# decimated (docs/benchmarks.md, "Dense clouds meshed dense").
+DENSE_POINTS = 100_000
+MATCH_FACES = 24_000
+MATCH_POINTS = MATCH_FACES // 2
 
 
 @dataclass(frozen=True)
@@ -331,19 +336,41 @@ def triangulate(points, *, max_points: int | None = MAX_POINTS, alpha_factor: fl
                       coverage, timings, tuple(notes))
 
 
-def load_point_cloud_fragment(path, name: str | None = None, *, max_points: int | None = MATCH_POINTS,
-                              alpha_factor: float = ALPHA_FACTOR, progress: bool = False) -> Fragment:
-    """Read a point-cloud file and triangulate it into a checked Fragment (called by relicgpu.io.load_fragment);
-    a cloud that does not close into a solid becomes a CloudFragment, matched on its points.
+def mesh_for_matching(points, *, max_points: int | None = DENSE_POINTS, faces: int | None = MATCH_FACES,
+                      alpha_factor: float = ALPHA_FACTOR, refine: bool = True, progress: bool = False,
+                      label: str = "points") -> MeshResult:
+    """`triangulate` at up to max_points points, then `refine.decimate` to at most about `faces`
+    faces (None: as meshed), or, where the dense mesh cannot be decimated, the cloud thinned to
+    faces // 2 points (a closed surface has about twice as many faces as vertices) and meshed.
+    Raises FragmentError as `triangulate` does."""
+    result = triangulate(points, max_points=max_points, alpha_factor=alpha_factor, refine=refine,
+                         progress=progress, label=label)
+    if faces is None or len(result.faces) <= faces:
+        return result
+    thinner = decimate(result.vertices, result.faces, faces)
+    if thinner is not None and closed_manifold_fault(thinner[0], thinner[1]) is None:
+        v, f, tolerance = thinner
+        note = (f"{label}: {len(result.faces)} faces decimated to {len(f)} for matching "
+                f"(surface moved at most {tolerance:.3g})")
+        return replace(result, vertices=v, faces=f, notes=result.notes + (note,))
+    again = triangulate(points, max_points=max(faces // 2, MIN_POINTS), alpha_factor=alpha_factor, refine=refine,
+                        progress=progress, label=label)
+    note = f"{label}: the dense mesh could not be decimated; the cloud was thinned before meshing instead"
+    return replace(again, notes=again.notes + (note,))
 
-    The cloud is thinned to max_points (MATCH_POINTS: the density the matcher is tuned for);
-    `relicgpu mesh` makes a finer mesh to keep.
+
+def load_point_cloud_fragment(path, name: str | None = None, *, max_points: int | None = DENSE_POINTS,
+                              faces: int = MATCH_FACES, alpha_factor: float = ALPHA_FACTOR,
+                              progress: bool = False) -> Fragment:
+    """Read a point-cloud file and mesh it for matching (`mesh_for_matching`) into a checked
+    Fragment (called by relicgpu.io.load_fragment); a cloud that does not close into a solid
+    becomes a CloudFragment, matched on its points. `relicgpu mesh` makes a finer mesh to keep.
     """
     p = Path(path)
     cloud = read_point_cloud(p)
     try:
-        result = triangulate(cloud.points, max_points=max_points, alpha_factor=alpha_factor,
-                             progress=progress, label=str(p))
+        result = mesh_for_matching(cloud.points, max_points=max_points, faces=faces, alpha_factor=alpha_factor,
+                                   progress=progress, label=str(p))
     except FragmentError as exc:  # sparse, thin or open: no solid, matched on its points
         return cloud_fragment(name or p.stem, cloud.points, cloud.normals, str(p),
                               cloud.notes + (f"{exc}; matched on its points",))
@@ -365,8 +392,8 @@ def cli_add_arguments(parser) -> None:
     parser.add_argument("--alpha-factor", type=float, default=ALPHA_FACTOR,
                         help=f"alpha as a multiple of the median point spacing (default {ALPHA_FACTOR})")
     parser.add_argument("--faces", type=int, default=0,
-                        help="aim at about this many faces by thinning the cloud to half as many points first "
-                             "(default: as many as --max-points gives)")
+                        help="at most about this many faces: the mesh made at --max-points is decimated "
+                             "(error-bounded edge collapse; default: as many as --max-points gives)")
     parser.add_argument("--no-refine", action="store_true",
                         help="keep the raw alpha-shape surface (no edge flips or vertex smoothing)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -386,12 +413,9 @@ def cli_main(args) -> int:
         raise CliError(f"{out}: unknown mesh format {out.suffix or '(no extension)'!r}; use .ply, .stl, .obj, .off or .glb")
     t0 = time.perf_counter()
     cloud = read_point_cloud(src)
-    # A closed surface has about twice as many faces as vertices.
-    max_points = args.max_points or None
-    if args.faces:
-        max_points = min(max_points or args.faces // 2, max(args.faces // 2, MIN_POINTS))
-    result = triangulate(cloud.points, max_points=max_points, alpha_factor=args.alpha_factor,
-                         refine=not args.no_refine, progress=not args.quiet, label=str(src))
+    result = mesh_for_matching(cloud.points, max_points=args.max_points or None, faces=args.faces or None,
+                               alpha_factor=args.alpha_factor, refine=not args.no_refine, progress=not args.quiet,
+                               label=str(src))
     vertices, faces = result.vertices, result.faces
     write_mesh(out, vertices, faces)
     for n in cloud.notes + result.notes:
