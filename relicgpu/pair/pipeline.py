@@ -111,19 +111,21 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
         pa, pb, params, be, scale)
     result = _match_prepared(pa, pb, params, be, heads, scale, timings)
     if heads is None and _second_params(params) is not None:
-        if not result.accepted or (rims is not None and rims(result.transform) <= 0):
+        first_rims = rims(result.transform) if result.accepted and rims is not None else None
+        if not result.accepted or (first_rims is not None and first_rims <= 0):
             # the fracture as the second segmentation reads it (a segmentation that misreads one
             # family reads another right, docs/benchmarks.md): where the first found no fit, or
             # one whose rims do not mostly meet the other's creases
             seconds = [_second_reading(p, params, be, scale) for p in (pa, pb)]
             second = None if None in seconds else _match_prepared(*seconds, params, be, None, scale, dict(timings))
+            second_rims = None
+            if second is not None and second.accepted and result.accepted and not same_pose(
+                    result.transform, second.transform, params.contact_distance * scale):
+                second_rims = rims(second.transform)
             if second is not None and second.accepted and (
-                    not result.accepted or (not same_pose(result.transform, second.transform,
-                                                          params.contact_distance * scale)
-                                            and rims(second.transform) > rims(result.transform))):
+                    not result.accepted or (second_rims is not None and second_rims > first_rims)):
                 why = "" if not result.accepted else (
-                    f"; its rims agree {rims(second.transform):.2f}, the first reading's fit "
-                    f"{rims(result.transform):.2f}")
+                    f"; its rims agree {second_rims:.2f}, the first reading's fit {first_rims:.2f}")
                 return replace(second, score=SECOND_READING_SCORE * second.score,
                                reason=f"{second.reason} ({params.second_segmentation} segmentation{why})")
     if result.accepted or heads is not None or pa.strict_sample is None or pb.strict_sample is None:
