@@ -12,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,6 +32,8 @@ CASES = [
     ("bench_mosaic.py", "--pairs 1 --json {tmp}/mosaic.json", "mosaic.json"),
     ("bench_clouds.py", "--pairs 1 --first 2 --modes normals,open --json {tmp}/clouds.json", "clouds.json"),
     ("bench_pointcloud.py", "--points 20000 --source slab --json {tmp}/pc.json", "pc.json"),
+    ("bench_search.py", "--families rough-clean --pieces 3 --seeds 0 --faces 600 --json {tmp}/search.json",
+     "search.json"),
     ("bench_segment.py", "--seeds 1 --only synth", None),
     ("bench_resolution.py", "--names slab --seeds 0 --faces 1500 --roughness-spacing 0,0.02", None),
     ("bench_verify.py", "collect --out {tmp}/fits.pkl --families synth --seeds 0 --faces 1500", "fits.pkl"),
@@ -52,3 +55,18 @@ def test_script_runs_on_tiny_inputs(script, args, output, tmp_path):
     assert run.stdout.strip() or run.stderr.strip()
     if output:
         assert (tmp_path / output).is_file()
+
+
+def test_bench_search_facets_name_each_contact():
+    """bench_search's ideal patches: a piece's fracture faces split by the neighbour they touch."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from bench_search import facet_labels
+    from relicgpu.synth import corpus
+
+    result = corpus.generate("voronoi-clean", 3, 0, 600)
+    labels = facet_labels(result)
+    for k, (lab, truth) in enumerate(zip(labels, result.fracture_faces)):
+        assert np.array_equal(lab > 0, np.asarray(truth, bool))
+        assert k + 1 not in lab  # never its own piece
+    for i, j in result.touching:
+        assert np.count_nonzero(labels[i] == 1 + j) > 0 and np.count_nonzero(labels[j] == 1 + i) > 0
