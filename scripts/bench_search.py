@@ -98,7 +98,7 @@ def run(family: str, seed: int, labels: str, args, backend) -> list[dict]:
 
     result = corpus.generate(family, args.pieces, seed, args.faces)
     params = Params(segmentation=labels if labels in SEGMENTATIONS else Params.segmentation,
-                    second_segmentation=None)
+                    second_segmentation=None).with_(**args.set)
     scale = common_scale(result.fragments, params)
     given = {"truth": [np.asarray(t, np.int64) for t in result.fracture_faces],
              "facets": facet_labels(result)}.get(labels)
@@ -153,10 +153,32 @@ def main(argv=None) -> int:
     ap.add_argument("--pieces", type=int, default=5)
     ap.add_argument("--faces", type=int, default=3000, help="faces a piece")
     ap.add_argument("--labels", default="roughness,hybrid,truth,facets", help=f"comma list of {LABELS}")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="a Params field set for the search (repeatable), e.g. patch_turns=24")
     ap.add_argument("--backend", default="numpy")
     ap.add_argument("--json", help="write every pair's row here")
     args = ap.parse_args(argv)
     from relicgpu.backends import resolve
+    from relicgpu.params import Params
+
+    changes = {}
+    for item in args.set:
+        name, _, value = item.partition("=")
+        if name not in Params.__dataclass_fields__ or not value:
+            ap.error(f"--set {item!r}: expected NAME=VALUE with NAME a Params field")
+        default = getattr(Params(), name)
+        if value == "None":
+            changes[name] = None
+        elif isinstance(default, bool):
+            changes[name] = value.lower() in ("1", "true", "yes")
+        elif default is not None:
+            changes[name] = type(default)(value)
+        else:  # a field unset by default: a number or a name
+            try:
+                changes[name] = float(value)
+            except ValueError:
+                changes[name] = value
+    args.set = changes
 
     labels = args.labels.split(",")
     unknown = set(labels) - set(LABELS)
@@ -170,7 +192,7 @@ def main(argv=None) -> int:
                 rows += run(family, seed, lab, args, backend)
     print("\n".join(table(rows)))
     if args.json:
-        Path(args.json).write_text(json.dumps({"command": " ".join(sys.argv), "backend": backend.name,
+        Path(args.json).write_text(json.dumps({"command": " ".join(sys.argv), "backend": backend.name, "set": args.set,
                                                "rows": rows}, indent=1))
     return 0
 

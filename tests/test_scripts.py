@@ -32,7 +32,8 @@ CASES = [
     ("bench_mosaic.py", "--pairs 1 --json {tmp}/mosaic.json", "mosaic.json"),
     ("bench_clouds.py", "--pairs 1 --first 2 --modes normals,open --json {tmp}/clouds.json", "clouds.json"),
     ("bench_pointcloud.py", "--points 20000 --source slab --json {tmp}/pc.json", "pc.json"),
-    ("bench_search.py", "--families rough-clean --pieces 3 --seeds 0 --faces 600 --json {tmp}/search.json",
+    ("bench_search.py", "--families rough-clean --pieces 3 --seeds 0 --faces 600 --set patch_turns=6 "
+     "--json {tmp}/search.json",
      "search.json"),
     ("bench_segment.py", "--seeds 1 --only synth", None),
     ("bench_resolution.py", "--names slab --seeds 0 --faces 1500 --roughness-spacing 0,0.02", None),
