@@ -79,6 +79,9 @@ def _as_prepared(x, params, backend, scale) -> Prepared:
 # matches first and weighs these less in its votes (corpus voronoi-clean, 5 pieces: 5 wrong fits
 # of the second reading, scored alike with the right ones, split the object in two)
 SECOND_READING_SCORE = 0.5
+# a fit accepted on its outline with a residual over max_rmse (`_outline_fit`) is less sure: the
+# assembly weighs it this much
+OUTLINE_SCORE = 0.5
 
 
 def pair_scale(a, b, params: Params) -> float:
@@ -221,16 +224,17 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     t1 = time.perf_counter()
     # verify the best-touching fits first; stop at the first accepted
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
-    best = None
+    best, by_outline = None, None
     for transform, ca, cb, pairs in fits:
         if clouds:  # mutual overlap, facing, interpenetration near the other surface only
             ver = verify_clouds(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
                                 params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale, index_of)
         else:
-            ver = verify(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
-                         params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale,
-                         params.max_penetration, index_of, min_facing=params.min_facing,
-                         max_surface_penetration=params.max_surface_penetration)
+            ver = _verify_mesh(pa.sample, pb.sample, transform, be, params, scale, index_of, params.max_rmse)
+            if by_outline is None and not ver.accepted and ver.reason.startswith("residual"):
+                by_outline = _outline_fit(pa.sample, pb.sample, transform, be, params, scale, index_of, ver)
+                by_outline = by_outline and ((True, ver.overlap - ver.penetration), transform, by_outline, ca, cb,
+                                             pairs)
         rank = (ver.accepted, ver.overlap - ver.penetration)
         if best is None or rank > best[0]:
             best = (rank, transform, ver, ca, cb, pairs)
@@ -243,10 +247,39 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
         reason = "no fracture contours" if not (pa.contours and pb.contours) else "no consistent LCS correspondences"
         return PairMatch(np.eye(4), False, 0.0, float("inf"), 0.0, 0.0, np.zeros((0, 2), np.int64), -1, -1,
                          reason, timings)
+    if not best[2].accepted and by_outline is not None:
+        best = by_outline  # no fit passed every check; one passed all but the residual, on its outline
     _, transform, ver, ca, cb, pairs = best
     score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
+    if ver.accepted and ver.reason != "accepted":
+        score *= OUTLINE_SCORE
     return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
                      pairs, ca, cb, ver.reason, timings)
+
+
+def _verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, max_rmse: float):
+    """`verify` of a mesh pair's fit with `params`' checks, the residual bound `max_rmse` (of the scale)."""
+    return verify(a, b, transform, be, params.contact_distance * scale, max_rmse * scale, params.min_overlap,
+                  params.penetration_depth * scale, params.max_penetration, index_of, min_facing=params.min_facing,
+                  max_surface_penetration=params.max_surface_penetration)
+
+
+def _outline_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, failed):
+    """The verification of a fit refused only for its residual (`failed`), accepted where its
+    residual lies within `residual_band` times the bound and the two outlines agree by at least
+    `min_outline` (`Params`); None otherwise. A rescanned break's right fit mates less closely
+    than a clean one's, and its sharp edges are rounded away; where the surfaces turn at a
+    working length the two pieces' outlines still meet."""
+    if params.min_outline is None or a.outline is None or b.outline is None:
+        return None
+    ver = _verify_mesh(a, b, transform, be, params, scale, index_of, params.residual_band * params.max_rmse)
+    if not ver.accepted:
+        return None
+    agree = rim_agreement(replace(a, creases=a.outline), replace(b, creases=b.outline), transform,
+                          params.contact_distance * scale, index_of)
+    if agree < params.min_outline:
+        return None
+    return replace(ver, reason=f"accepted on its outline (outlines agree {agree:.2f}; {failed.reason})")
 
 
 def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict):

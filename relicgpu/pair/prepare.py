@@ -16,6 +16,7 @@ from .cloudmatch import STRICT_SPREADS, cloud_sample, region_samples
 from ..cloud.points import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals
 from .segment import segment
+from ..topology import ring_average
 from .verify import SurfaceSample, sample_spacing, vertex_normals
 
 @dataclass(frozen=True, eq=False)
@@ -86,6 +87,8 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     prob = sampling_prob(seg, params)
     sample = _surface_sample(fragment, seg, prob, params.icp_points, params.ppf_normal_radius * scale,
                              params.crease_angle_deg)
+    sample = replace(sample, outline=outline_points(fragment.vertices, fragment.faces, seg, params.outline_radius * scale,
+                                                    params.outline_spread, 2 * params.icp_points))
     patches = fracture_patches(fragment, seg, prob)
     timings["sample"] = time.perf_counter() - t2
     second, second_params = None, _second_params(params)
@@ -152,6 +155,27 @@ def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, pl
     creases = crease_points(v, sharp, sample_spacing(v[surf]), 2 * n_points)
     return SurfaceSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf],
                          normals[surf], plane_normals, fracture_weight=vertex_weight[frac_vertices], creases=creases)
+
+
+def outline_points(vertices: np.ndarray, faces: np.ndarray, seg, radius: float, spread: float,
+                   n_points: int) -> np.ndarray:
+    """(K, 3) centres of the faces where the surface turns within `radius` (at most n_points,
+    spread evenly): the middle eigenvalue of the area-weighted tensor of the face normals within
+    about `radius` (in edge steps) is above `spread` (two planes meeting at an angle t give
+    sin^2(t / 2), so 0.12 is about 41 degrees). Unlike the edges sharper than the crease angle,
+    this finds a crease that a rescan rounded over several faces (`verify.rim_agreement` on these
+    points weighs a fit by its outline where noise hides the sharp edges)."""
+    v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    edges = seg.topology.edge_vertices
+    if len(f) == 0 or len(edges) == 0 or radius <= 0:
+        return np.zeros((0, 3))
+    step = float(np.median(np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)))
+    rings = int(np.clip(np.ceil(radius / max(step, 1e-300)), 1, 12))
+    n = seg.normals
+    tensor = ring_average((n[:, :, None] * n[:, None, :]).reshape(-1, 9), seg.areas, seg.topology.edge_faces, rings)
+    middle = np.linalg.eigvalsh(tensor.reshape(-1, 3, 3))[:, 1]
+    centres = v[f[middle > spread]].mean(axis=1)
+    return centres[even_subsample(centres, n_points)] if len(centres) else np.zeros((0, 3))
 
 
 def crease_points(vertices: np.ndarray, edges: np.ndarray, step: float, n_points: int) -> np.ndarray:

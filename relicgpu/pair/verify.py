@@ -41,6 +41,8 @@ class SurfaceSample:
     fracture_plane_normals: np.ndarray | None = None  # (P,3) normals of local plane fits at `fracture`
     fracture_weight: np.ndarray | None = None  # (P,) fracture likelihood in (0, 1] matching weighs by; None: 1
     creases: np.ndarray | None = None  # (K,3) points along the mesh's sharp edges (`rim_agreement`); None: clouds
+    outline: np.ndarray | None = None  # (K,3) points where the surface turns at a working length
+    # (`prepare.outline_points`); None: clouds
 
     def weights(self) -> np.ndarray:
         """(P,) weight of each fracture point: `fracture_weight`, or 1 where none was given (clouds)."""
