@@ -93,3 +93,50 @@ def test_match_pair_takes_the_second_readings_fit_where_its_rims_agree_more(halv
         assert rotation_angle_deg(m.transform[:3, :3] @ truth[:3, :3].T) < 1e-6
         assert ("(hybrid segmentation; its rims agree" in m.reason) == expect_second
         assert m.score == (0.25 if expect_second else 0.5)  # a second reading's fit scores half
+
+
+def test_outline_points_find_a_rounded_crease_that_no_edge_angle_shows():
+    """A unit cube with edges rounded (radius 0.04), meshed by marching cubes as a rescan would be:
+    no edge is sharper than the crease angle, yet the outline points (where the surface turns
+    within outline_radius) line the cube's edges and none lies on a face."""
+    from skimage.measure import marching_cubes
+
+    from relicgpu.pair.prepare import outline_points
+    from relicgpu.pair.segment import segment
+
+    step, radius = 0.02, 0.04
+    axis = np.arange(-0.6, 0.6 + step, step)
+    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1)
+    q = np.abs(grid) - (0.5 - radius)
+    sdf = np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0) - radius
+    v, f, _, _ = marching_cubes(sdf, 0.0, spacing=(step,) * 3)
+    mesh = trimesh.Trimesh(v + axis[0], f)
+    params, scale = Params(), 1.7
+    seg = segment(mesh.vertices, mesh.faces, params, scale, pl.resolve("numpy"))
+    assert seg.edge_angle.max() < params.crease_angle_deg
+    points = outline_points(mesh.vertices, mesh.faces, seg, params.outline_radius * scale, params.outline_spread, 3000)
+    assert len(points) > 500
+    near = np.abs(points) > 0.5 - 0.12  # per coordinate: near one of the two faces across it
+    assert np.all(near.sum(axis=1) >= 2)  # near two faces at once: along an edge
+
+
+@pytest.fixture(scope="module")
+def noisy_pair():
+    """A two-piece object of smooth cuts, rescanned (noise, smoothing reconstruction, decimation)."""
+    from relicgpu.synth import corpus
+
+    r = corpus.generate("smooth-noisy", 2, 0, 6000)
+    return r, np.linalg.inv(r.poses[0]) @ r.poses[1]
+
+
+def test_a_rescanned_pair_is_accepted_on_its_outline_and_only_there(noisy_pair):
+    """The right fit of a rescanned break mates less closely than max_rmse allows; it passes on its
+    outline, scored half, and is refused for its residual when outlines are not consulted."""
+    r, truth = noisy_pair
+    a, b = r.fragments
+    m = pl.match_pair(a, b, Params(), "numpy")
+    assert m.accepted and m.reason.startswith("accepted on its outline"), m.reason
+    assert rotation_angle_deg(m.transform[:3, :3] @ truth[:3, :3].T) < 2.0
+    assert abs(m.score - pl.OUTLINE_SCORE * m.overlap * (1 - m.penetration)) < 1e-9
+    strict = pl.match_pair(a, b, Params(min_outline=None), "numpy")
+    assert not strict.accepted and strict.reason.startswith("residual"), strict.reason
