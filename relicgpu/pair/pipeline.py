@@ -224,7 +224,7 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     t1 = time.perf_counter()
     # verify the best-touching fits first; stop at the first accepted
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
-    best, by_outline = None, None
+    best, by_outline = None, None  # by_outline: (transform, verification, ca, cb, pairs) of `_outline_fit`
     for transform, ca, cb, pairs in fits:
         if clouds:  # mutual overlap, facing, interpenetration near the other surface only
             ver = verify_clouds(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
@@ -232,9 +232,8 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
         else:
             ver = _verify_mesh(pa.sample, pb.sample, transform, be, params, scale, index_of, params.max_rmse)
             if by_outline is None and not ver.accepted and ver.reason.startswith("residual"):
-                by_outline = _outline_fit(pa.sample, pb.sample, transform, be, params, scale, index_of, ver)
-                by_outline = by_outline and ((True, ver.overlap - ver.penetration), transform, by_outline, ca, cb,
-                                             pairs)
+                outline = _outline_fit(pa.sample, pb.sample, transform, be, params, scale, index_of, ver)
+                by_outline = None if outline is None else (transform, outline, ca, cb, pairs)
         rank = (ver.accepted, ver.overlap - ver.penetration)
         if best is None or rank > best[0]:
             best = (rank, transform, ver, ca, cb, pairs)
@@ -247,12 +246,13 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
         reason = "no fracture contours" if not (pa.contours and pb.contours) else "no consistent LCS correspondences"
         return PairMatch(np.eye(4), False, 0.0, float("inf"), 0.0, 0.0, np.zeros((0, 2), np.int64), -1, -1,
                          reason, timings)
-    if not best[2].accepted and by_outline is not None:
-        best = by_outline  # no fit passed every check; one passed all but the residual, on its outline
     _, transform, ver, ca, cb, pairs = best
-    score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
-    if ver.accepted and ver.reason != "accepted":
-        score *= OUTLINE_SCORE
+    weight = 1.0
+    if not ver.accepted and by_outline is not None:
+        # no fit passed every check; one passed all but the residual, on its outline
+        transform, ver, ca, cb, pairs = by_outline
+        weight = OUTLINE_SCORE
+    score = weight * ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
                      pairs, ca, cb, ver.reason, timings)
 
@@ -272,6 +272,8 @@ def _outline_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, 
     working length the two pieces' outlines still meet."""
     if params.min_outline is None or a.outline is None or b.outline is None:
         return None
+    if failed.rmse > params.residual_band * params.max_rmse * scale:
+        return None  # out of the band: no second verification needed to know
     ver = _verify_mesh(a, b, transform, be, params, scale, index_of, params.residual_band * params.max_rmse)
     if not ver.accepted:
         return None
