@@ -121,6 +121,10 @@ class Params:
     min_outline: float | None = 0.3
     outline_radius: float = 0.05
     outline_spread: float = 0.12
+    # assembly: a verified match whose sharp creases meet the partner's (`verify.rim_agreement` of
+    # its fit at least rim_priority; None: off) weighs forest.RIM_WEIGHT more in the assembly
+    # graph (docs/benchmarks.md, "Matches whose outlines agree are joined first")
+    rim_priority: float | None = 0.15
 
     def with_(self, **changes) -> "Params":
         return replace(self, **changes)
@@ -140,3 +144,34 @@ def with_segmentations(params: Params, first: str | None = None, second: str | N
     if second:
         params = params.with_(second_segmentation=None if second == "none" else second)
     return params
+
+
+def parse_assignments(items) -> dict:
+    """Params fields from NAME=VALUE strings (the benchmark scripts' --set), each value of its
+    field's type ("None" for None; a field unset by default takes a number or a name).
+
+    Raises ValueError naming the item where NAME is not a Params field or VALUE does not parse."""
+    default = Params()
+    changes = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in Params.__dataclass_fields__ or not value:
+            raise ValueError(f"{item!r}: expected NAME=VALUE with NAME a Params field")
+        current = getattr(default, name)
+        try:
+            if value == "None":
+                changes[name] = None
+            elif isinstance(current, bool):
+                if value.lower() not in ("1", "true", "yes", "0", "false", "no"):
+                    raise ValueError(value)
+                changes[name] = value.lower() in ("1", "true", "yes")
+            elif current is not None:
+                changes[name] = type(current)(value)
+            else:
+                try:
+                    changes[name] = float(value)
+                except ValueError:
+                    changes[name] = value
+        except ValueError:
+            raise ValueError(f"{item!r}: {name} must be {type(current).__name__}") from None
+    return changes

@@ -16,6 +16,7 @@ project's own generator, where the pipeline was tuned. Per row:
     python scripts/bench_generalize.py --quick                       # a few minutes on 2 cores
     python scripts/bench_generalize.py --seeds 0,1,2 --json gen.json # the full table
     python scripts/bench_generalize.py --families voronoi-noisy --realdata none --backend warp-cpu
+    python scripts/bench_generalize.py --families smooth-clean --realdata none --set patch_turns=36
 
 A progress line per case goes to stderr; --dry builds the cases and checks their labels only.
 """
@@ -33,7 +34,7 @@ import numpy as np
 from relicgpu.heap.evaluate import relative_pose_error, score
 from relicgpu.synth import corpus
 from relicgpu.pair.icp import invert
-from relicgpu.params import SEGMENTATIONS, Params, with_segmentations
+from relicgpu.params import SEGMENTATIONS, Params, parse_assignments, with_segmentations
 
 QUICK = {"seeds": "0", "faces": 3000, "multi_faces": 1500, "pieces": "5", "realdata_assemble": False}
 FULL = {"seeds": "0,1,2", "faces": 6000, "multi_faces": 3000, "pieces": "5,8", "realdata_assemble": True}
@@ -130,7 +131,7 @@ def run(args) -> dict:
                 [] if args.realdata == "none" else args.realdata.split(","))
     faces = args.faces or preset["faces"]
     multi_faces = args.multi_faces or preset["multi_faces"]
-    params = with_segmentations(Params(), args.segmentation, args.second_segmentation)
+    params = with_segmentations(Params(), args.segmentation, args.second_segmentation).with_(**args.set)
     backend = resolve(args.backend)
     plan = [(fam, seed, 2) for fam in families for seed in seeds]
     plan += [(fam, seed, p) for fam in families for seed in seeds for p in pieces]
@@ -178,7 +179,7 @@ def run(args) -> dict:
         print(f"[{k}/{len(plan)}] {fam} seed {seed}: {line} ({case['time_s']:.1f} s)", file=sys.stderr, flush=True)
         cases.append(case)
     return {"command": " ".join(["python"] + sys.argv), "date": datetime.date.today().isoformat(),
-            "backend": backend.name, "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
+            "backend": backend.name, "set": args.set, "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
             "rows": table_rows(cases), "cases": cases}
 
 
@@ -242,9 +243,15 @@ def main(argv=None) -> int:
     ap.add_argument("--second-segmentation", choices=SEGMENTATIONS + ("none",),
                     help="Params.second_segmentation, the reading a pair is matched on again where the first "
                          "finds no fit (none: no second reading; default: Params' own)")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="a Params field for every case (repeatable), e.g. patch_turns=36")
     ap.add_argument("--dry", action="store_true", help="build the cases and report their labels only")
     ap.add_argument("--json", help="write the rows and every case here")
     args = ap.parse_args(argv)
+    try:
+        args.set = parse_assignments(args.set)
+    except ValueError as err:
+        ap.error(f"--set {err}")
     out = run(args)
     print(format_table(out["rows"]))
     if args.json:

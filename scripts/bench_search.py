@@ -159,26 +159,12 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write every pair's row here")
     args = ap.parse_args(argv)
     from relicgpu.backends import resolve
-    from relicgpu.params import Params
+    from relicgpu.params import parse_assignments
 
-    changes = {}
-    for item in args.set:
-        name, _, value = item.partition("=")
-        if name not in Params.__dataclass_fields__ or not value:
-            ap.error(f"--set {item!r}: expected NAME=VALUE with NAME a Params field")
-        default = getattr(Params(), name)
-        if value == "None":
-            changes[name] = None
-        elif isinstance(default, bool):
-            changes[name] = value.lower() in ("1", "true", "yes")
-        elif default is not None:
-            changes[name] = type(default)(value)
-        else:  # a field unset by default: a number or a name
-            try:
-                changes[name] = float(value)
-            except ValueError:
-                changes[name] = value
-    args.set = changes
+    try:
+        args.set = parse_assignments(args.set)
+    except ValueError as err:
+        ap.error(f"--set {err}")
 
     labels = args.labels.split(",")
     unknown = set(labels) - set(LABELS)

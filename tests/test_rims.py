@@ -9,7 +9,7 @@ import relicgpu.pair.pipeline as pl
 from relicgpu.io.fragment import Fragment
 from relicgpu.pair.icp import rotation_angle_deg
 from relicgpu.pair.prepare import crease_points, prepare
-from relicgpu.pair.verify import in_contact, rim_agreement, sample_spacing
+from relicgpu.pair.verify import in_contact, index_cache, rim_agreement, sample_spacing
 from relicgpu.params import Params
 
 
@@ -66,7 +66,7 @@ def test_rims_agree_at_the_right_fit_and_not_at_a_turned_one(halves):
     pa, pb, truth, params = halves
     assert len(pa.sample.creases) > 50 and len(pb.sample.creases) > 50
     contact = params.contact_distance * 2.0
-    index_of = pl._index_cache(pl.resolve("numpy"))
+    index_of = index_cache(pl.resolve("numpy"))
     right = rim_agreement(pa.sample, pb.sample, truth, contact, index_of)
     # the cut face (1 x 0.5) turned a quarter about its normal: it lies on a's cut face, crosswise
     turned = _turn(np.array([1.0, 0, 0]), 90.0, np.array([1.0, 0.5, 0.25])) @ truth
@@ -140,3 +140,23 @@ def test_a_rescanned_pair_is_accepted_on_its_outline_and_only_there(noisy_pair):
     assert abs(m.score - pl.OUTLINE_SCORE * m.overlap * (1 - m.penetration)) < 1e-9
     strict = pl.match_pair(a, b, Params(min_outline=None), "numpy")
     assert not strict.accepted and strict.reason.startswith("residual"), strict.reason
+
+
+def test_assembly_joins_the_match_whose_rims_agree_before_a_better_scored_one(halves):
+    """Two verified fits of one pair: the turned one scores more (a flat break laid on its partner
+    crosswise touches as widely), the right one puts the rims together and is joined first."""
+    from relicgpu.heap.forest import RIM_WEIGHT, Edge, grow_forest, rim_first
+
+    pa, pb, truth, params = halves
+    turned = _turn(np.array([1.0, 0, 0]), 90.0, np.array([1.0, 0.5, 0.25])) @ truth
+    edges = [Edge(0, 1, turned, 0.9), Edge(0, 1, truth, 0.2)]
+    samples = [pa.sample, pb.sample]
+    weighed = rim_first(edges, samples, params, 2.0, pl.resolve("numpy"))
+    assert [e.score for e in weighed] == [0.9, 0.2 + RIM_WEIGHT]
+    assert [e.score for e in rim_first(edges, samples, params.with_(rim_priority=None), 2.0, "numpy")] == [0.9, 0.2]
+
+    for given, right_used in ((weighed, True), (edges, False)):
+        pose, group, _ = grow_forest(2, given, samples, params, 2.0, pl.resolve("numpy"))
+        placed = np.linalg.inv(pose[0]) @ pose[1]
+        assert group[0] == group[1]
+        assert (rotation_angle_deg(placed[:3, :3] @ truth[:3, :3].T) < 1e-6) == right_used

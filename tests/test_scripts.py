@@ -71,3 +71,18 @@ def test_bench_search_facets_name_each_contact():
         assert k + 1 not in lab  # never its own piece
     for i, j in result.touching:
         assert np.count_nonzero(labels[i] == 1 + j) > 0 and np.count_nonzero(labels[j] == 1 + i) > 0
+
+
+def test_set_reads_params_fields_by_their_type_and_names_a_bad_one():
+    """The benchmarks' --set NAME=VALUE (relicgpu.params.parse_assignments)."""
+    from relicgpu.params import parse_assignments
+
+    got = parse_assignments(["patch_turns=36", "contact_distance=0.02", "rim_priority=None", "min_outline=0.2",
+                             "second_segmentation=regions"])
+    assert got == {"patch_turns": 36, "contact_distance": 0.02, "rim_priority": None, "min_outline": 0.2,
+                   "second_segmentation": "regions"}
+    assert type(got["patch_turns"]) is int
+    for bad, why in (("no_such_field=1", "NAME a Params field"), ("patch_turns", "NAME=VALUE"),
+                     ("patch_turns=many", "patch_turns must be int")):
+        with pytest.raises(ValueError, match=why):
+            parse_assignments([bad])

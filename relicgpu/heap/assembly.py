@@ -36,7 +36,7 @@ from ..io.files import atomic_write_bytes
 from ..io.fragment import Fragment, FragmentError
 from ..io.load import Batch, read_batch
 from .cache import Cache, fragment_hash
-from .forest import Edge, grow_forest, refine_poses
+from .forest import Edge, grow_forest, refine_poses, rim_first
 from .outputs import closed_solid, write_outputs
 from .screen import SCREEN_LCS_WEIGHT, _ppf_screen_job, _screen_blocks, normalised_support, screen, select_candidates
 from ..params import Params
@@ -315,6 +315,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     edges = [Edge(i, j, np.asarray(d["transform"], np.float64), float(d["score"]))
              for (i, j), d in sorted(docs.items()) if d["accepted"]]
     samples = [p.sample for p in prepared]
+    edges = rim_first(edges, samples, params, scale, be)  # matches whose outlines agree first
     joined = sorted({k for e in edges for k in (e.a, e.b)})
     solids = [closed_solid(fragments[i]) if i in joined else None for i in range(n)]
     pose, group, notes = grow_forest(n, edges, samples, params, scale, be, solids)

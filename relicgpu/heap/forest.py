@@ -9,6 +9,7 @@ import numpy as np
 
 from ..backends import numpy as numpy_backend
 from ..pair.icp import apply, invert, kabsch
+from ..pair.verify import index_cache, rim_agreement
 from ..params import Params
 
 
@@ -29,6 +30,11 @@ CLASH_MIN_VOLUME = 0.002
 # and the edges tried a round.
 RECOVERY_ROUNDS = 3
 MAX_SUSPECTS = 12
+# A verified match whose outlines agree (`rim_first`) weighs this much more than its score: the
+# scores are at most 1, so it is joined before every other match and outvotes any few of them.
+# A wrong fit that passes verification on a smooth or flat break lays one face on another with
+# the rims apart; scored by overlap it can outrank the right fits (docs/benchmarks.md).
+RIM_WEIGHT = 10.0
 
 
 # --- the assembly graph ----------------------------------------------------------
@@ -51,6 +57,20 @@ class Edge:
     b: int
     transform: np.ndarray  # carries b onto a
     score: float
+
+
+def rim_first(edges: list[Edge], samples: list, params: Params, scale: float, backend) -> list[Edge]:
+    """The edges with RIM_WEIGHT added to the score of each whose fit puts the two pieces' sharp
+    creases together (`verify.rim_agreement` at least `params.rim_priority`; None: unchanged).
+    samples: each fragment's SurfaceSample (its `creases`; without them, as a cloud's, no edge
+    gains)."""
+    if params.rim_priority is None:
+        return list(edges)
+    index_of = index_cache(backend)
+    contact = params.contact_distance * scale
+    return [Edge(e.a, e.b, e.transform, e.score + RIM_WEIGHT * (
+        rim_agreement(samples[e.a], samples[e.b], e.transform, contact, index_of) >= params.rim_priority))
+        for e in edges]
 
 
 def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale: float, backend,

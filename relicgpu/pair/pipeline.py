@@ -19,7 +19,7 @@ from .cloudmatch import (AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_
                          cloud_params, cloud_sample, verify_clouds)
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .ppf import vote_poses
-from .verify import rim_agreement, verify
+from .verify import index_cache, rim_agreement, verify
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,20 +144,9 @@ def _rims(pa: Prepared, pb: Prepared, params: Params, be, scale: float):
     for the break can pass a wrong fit of that patch, and the right fit puts the outlines of the
     common break together, whichever reading found it. A fit whose crease points on the other
     surface mostly lie on its creases (agreement above 0) is taken as it is."""
-    index_of = _index_cache(be)
+    index_of = index_cache(be)
     contact = params.contact_distance * scale
     return lambda transform: rim_agreement(pa.sample, pb.sample, transform, contact, index_of)
-
-
-def _index_cache(be):
-    """A function from a point array to its nearest-neighbour index, each built once."""
-    indexes: dict = {}  # keyed by id, the array kept alive beside its index
-
-    def index_of(points: np.ndarray):
-        if id(points) not in indexes:
-            indexes[id(points)] = (points, be.nearest_index(points))
-        return indexes[id(points)][1]
-    return index_of
 
 
 def _match_strict(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
@@ -328,7 +317,7 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
                 for pose in facing_poses(P.centre, P.normal, Q.centre, Q.normal, params.patch_turns):
                     starts.append(pose)
                     origins.append(("patch", -1, -1, np.zeros((0, 2), np.int64)))
-    index_of = _index_cache(be)  # nearest-neighbour indexes of the pair's own point sets
+    index_of = index_cache(be)  # nearest-neighbour indexes of the pair's own point sets
 
     w_a, w_b = pa.sample.weights(), pb.sample.weights()
     candidates = []

@@ -190,6 +190,18 @@ def in_contact(moved: np.ndarray, dist: np.ndarray, idx: np.ndarray, target: np.
     return near | ((dist < reach) & (plane < contact))
 
 
+def index_cache(backend):
+    """A function from a point array to its nearest-neighbour index on `backend`, each built once
+    (the `index_of` the checks here take)."""
+    indexes: dict = {}  # keyed by id, the array kept alive beside its index
+
+    def index_of(points: np.ndarray):
+        if id(points) not in indexes:
+            indexes[id(points)] = (points, backend.nearest_index(points))
+        return indexes[id(points)][1]
+    return index_of
+
+
 def rim_agreement(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, contact: float, index_of) -> float:
     """How well the sharp creases of the two surfaces coincide where they touch (b moved by
     `transform`): crease points lying on the other surface (`icp.in_contact`) that also lie on
