@@ -160,3 +160,18 @@ def test_assembly_joins_the_match_whose_rims_agree_before_a_better_scored_one(ha
         placed = np.linalg.inv(pose[0]) @ pose[1]
         assert group[0] == group[1]
         assert (rotation_angle_deg(placed[:3, :3] @ truth[:3, :3].T) < 1e-6) == right_used
+
+
+def test_assemble_says_which_matches_were_weighed_first_for_their_rims(halves):
+    """assembly.json's reason of a match weighed first, and the count in the stats (the bar set
+    below any fit's agreement, then off)."""
+    from relicgpu.heap.assembly import assemble
+
+    pa, pb, _, params = halves
+    for priority, expect in ((-1.0, 1), (None, 0)):
+        asm = assemble([pa.fragment, pb.fragment], params.with_(rim_priority=priority, unit=2.0), "numpy",
+                       engine="local", workers=1, progress=False)
+        (m,) = asm.matches
+        assert m.used and m.note.startswith("used: ")
+        assert m.note.endswith("weighed first)") == bool(expect), m.note
+        assert asm.stats["rims_first"] == expect

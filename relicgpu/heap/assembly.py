@@ -315,10 +315,14 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     edges = [Edge(i, j, np.asarray(d["transform"], np.float64), float(d["score"]))
              for (i, j), d in sorted(docs.items()) if d["accepted"]]
     samples = [p.sample for p in prepared]
-    edges = rim_first(edges, samples, params, scale, be)  # matches whose outlines agree first
+    weighed = rim_first(edges, samples, params, scale, be)  # matches whose outlines agree first
+    first = {(e.a, e.b) for e, w in zip(edges, weighed) if w.score > e.score}
+    edges = weighed
     joined = sorted({k for e in edges for k in (e.a, e.b)})
     solids = [closed_solid(fragments[i]) if i in joined else None for i in range(n)]
     pose, group, notes = grow_forest(n, edges, samples, params, scale, be, solids)
+    for key in first:
+        notes[key] += " (its rims meet the partner's creases: weighed first)"
     used = [e for e in edges if notes[(e.a, e.b)].startswith("used")]
     timings["assemble"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -330,7 +334,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     matches = [_record(e.a, e.b, docs[(e.a, e.b)], notes[(e.a, e.b)]) for e in edges]
     rejected = [_record(i, j, d, f"not verified: {d['reason']}") for (i, j), d in sorted(docs.items())
                 if not d["accepted"]]
-    stats.update(accepted=len(edges), used=len(used), cache_hits=cache.hits, cache_writes=cache.writes,
+    stats.update(accepted=len(edges), rims_first=len(first), used=len(used), cache_hits=cache.hits, cache_writes=cache.writes,
                  groups=len(set(groups)), placed=sum(p is not None for p in poses))
     timings["total"] = time.perf_counter() - t_start
     result = Assembly(names, poses, groups, matches, timings, backend_name, eng.name, stats, scores, candidates,
