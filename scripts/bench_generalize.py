@@ -179,7 +179,8 @@ def run(args) -> dict:
         print(f"[{k}/{len(plan)}] {fam} seed {seed}: {line} ({case['time_s']:.1f} s)", file=sys.stderr, flush=True)
         cases.append(case)
     return {"command": " ".join(["python"] + sys.argv), "date": datetime.date.today().isoformat(),
-            "backend": backend.name, "set": args.set, "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
+            "backend": backend.name, "set": args.set,
+            "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
             "rows": table_rows(cases), "cases": cases}
 
 

@@ -334,8 +334,8 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     matches = [_record(e.a, e.b, docs[(e.a, e.b)], notes[(e.a, e.b)]) for e in edges]
     rejected = [_record(i, j, d, f"not verified: {d['reason']}") for (i, j), d in sorted(docs.items())
                 if not d["accepted"]]
-    stats.update(accepted=len(edges), rims_first=len(first), used=len(used), cache_hits=cache.hits, cache_writes=cache.writes,
-                 groups=len(set(groups)), placed=sum(p is not None for p in poses))
+    stats.update(accepted=len(edges), rims_first=len(first), used=len(used), cache_hits=cache.hits,
+                 cache_writes=cache.writes, groups=len(set(groups)), placed=sum(p is not None for p in poses))
     timings["total"] = time.perf_counter() - t_start
     result = Assembly(names, poses, groups, matches, timings, backend_name, eng.name, stats, scores, candidates,
                       [f.file for f in fragments], list(batch.skipped), list(batch.notes), rejected)
