@@ -158,8 +158,10 @@ def test_estimated_normals_of_a_thin_shell_face_out_on_both_faces():
 # a thin-walled vase (narrow break), a torso and a slab, with and without normals
 # (issue 15, without normals: torso seed 2's first pick held a third of its large break; slab seed
 # 2's right pose was rejected for interpenetration its estimated normals made up far from the other
-# surface)
+# surface; slab seed 9 was accepted 2.4 degrees off, turned about its narrow break, before the skin
+# across the seam held it: relicgpu.pair.seam)
 @pytest.mark.parametrize("shape,seed,with_normals", [("vase", 0, True), ("vase", 0, False), ("torso", 0, True),
+                                                     ("slab", 9, False),
                                                      ("torso", 0, False), ("torso", 1, True), ("torso", 1, False),
                                                      ("slab", 1, True), ("torso", 2, False),
                                                      ("slab", 2, False)])

@@ -176,6 +176,18 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
                          normals[surf], plane_normals)
 
 
+def cloud_skin(fragment, sample: SurfaceSample, below: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """The skin of a cloud fragment's surface sample: its (K, 3) points of fracture likelihood
+    (`cloud_likelihood` over all the fragment's points) under `below`, and their (K, 3) normals."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(fragment.vertices, np.float64)
+    likelihood = cloud_likelihood(points, getattr(fragment, "normals", None))
+    _, nearest = cKDTree(points).query(sample.surface)
+    skin = likelihood[nearest] < below
+    return sample.surface[skin], sample.normals[skin]
+
+
 def fracture_roughness(points: np.ndarray, given_normals: np.ndarray | None, params: Params) -> float:
     """How far a cloud's fracture sample (`fracture_points`) strays from a plane at the scale the
     contact is measured at: the median RMS distance of each sample point's ROUGHNESS_FIT nearest

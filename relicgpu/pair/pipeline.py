@@ -16,9 +16,10 @@ from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params
 from .cloudmatch import (AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS, WIDE_SPREADS,
-                         cloud_params, cloud_sample, verify_clouds)
+                         cloud_params, cloud_sample, cloud_skin, verify_clouds)
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .ppf import vote_poses
+from . import seam
 from .verify import index_cache, rim_agreement, verify
 
 
@@ -131,10 +132,41 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
                     f"; its rims agree {second_rims:.2f}, the first reading's fit {first_rims:.2f}")
                 return replace(second, score=SECOND_READING_SCORE * second.score,
                                reason=f"{second.reason} ({params.second_segmentation} segmentation{why})")
-    if result.accepted or heads is not None or pa.strict_sample is None or pb.strict_sample is None:
+    if not (result.accepted or heads is not None or pa.strict_sample is None or pb.strict_sample is None):
+        result = _match_strict(pa, pb, params, be, scale, timings, result)
+        if not result.accepted:
+            result = _match_regions(pa, pb, params, be, scale, timings, result)
+    clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
+    return _held_by_skin(pa, pb, params, be, scale, result) if clouds and result.accepted else result
+
+
+def _held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, result: PairMatch) -> PairMatch:
+    """An accepted cloud fit that its break leaves loose (`seam.looseness` under `seam.LOOSE`: a
+    thin board's narrow band) polished on the skin across the seam (`seam.seam_polish`), where
+    the polished fit passes verification too (result: kept otherwise)."""
+    index_of = index_cache(be)
+    contact = params.contact_distance * scale
+    index = index_of(pa.sample.fracture)
+    loose = seam.looseness(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals, result.transform,
+                           contact, index)
+    if loose >= seam.LOOSE:
         return result
-    result = _match_strict(pa, pb, params, be, scale, timings, result)
-    return result if result.accepted else _match_regions(pa, pb, params, be, scale, timings, result)
+    t0 = time.perf_counter()
+    transform, held = seam.seam_polish(pa.sample.fracture, pa.sample.fracture_normals, pb.sample.fracture,
+                                       cloud_skin(pa.fragment, pa.sample), cloud_skin(pb.fragment, pb.sample),
+                                       result.transform, contact, scale, index)
+    timings = {**result.timings, "seam": time.perf_counter() - t0}
+    if not held:
+        return replace(result, timings=timings)
+    ver = verify_clouds(pa.sample, pb.sample, transform, be, contact, params.max_rmse * scale, params.min_overlap,
+                        params.penetration_depth * scale, index_of)
+    if not ver.accepted:
+        return replace(result, timings=timings)
+    base = result.overlap * (1.0 - result.penetration)
+    weight = result.score / base if base > 0 else 1.0
+    return replace(result, transform=transform, score=weight * ver.overlap * (1.0 - ver.penetration), rmse=ver.rmse,
+                   overlap=ver.overlap, penetration=ver.penetration, timings=timings,
+                   reason=f"{result.reason} (loose on its break: the skin across the seam held it, {held} points)")
 
 
 def _rims(pa: Prepared, pb: Prepared, params: Params, be, scale: float):

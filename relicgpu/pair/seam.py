@@ -1,0 +1,196 @@
+"""The skin across the seam: where a break leaves a turn of the fit loose, the skin holds it.
+
+A thin board's break (a tile, a slab, a plank) is a long narrow band. Fitted on its points alone
+the pose can turn about the band's length almost freely: in the point-to-plane normal equations
+of a sparse cloud that direction is 100-500 times weaker than the strongest, and the fit settles
+2-3 degrees off (issue 15, `docs/benchmarks.md`). The skin on the two sides of a fresh break
+continues across it, so a fit folded at the seam puts one side's skin off the other's surface.
+
+`seam_polish` adds that continuation to the point-to-plane polish: each skin point of one piece
+near the other's skin is held to the other's surface extrapolated to it (a quadric height field
+over the skin points within `REACH` of the seam, fitted once per round), each term weighed by
+the inverse of its residual variance against the break's. It runs only where the fit is loose
+(`looseness` under `LOOSE`): where the break pins every direction the skin has nothing to add,
+and a worn or chipped rim could pull the fit.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .icp import apply, axis_rotation
+
+# Skin points of one piece within NEAR of the other's skin are held to it, extrapolated from the
+# other's skin points within REACH of the nearest one, turned within AGREE (cosine) of the point's
+# own normal; a fit over fewer than MIN_FIT points, or whose own residual (RMS) exceeds MAX_FIT,
+# is no surface to extend (a crease, a thin wall's two faces), and a point farther than GATE of
+# those residuals from it is not its continuation. Lengths are shares of the pair's scale.
+# Measured on bench_clouds' synthetic pairs 0-47 without normals (docs/benchmarks.md).
+NEAR = 0.05
+REACH = 0.15
+AGREE = 0.8
+MIN_FIT = 10
+MAX_FIT = 0.002
+GATE = 4.0
+# The weakest direction of the break's own normal equations, as a share of the strongest, under
+# which the fit is loose: slabs 0.002-0.011, vases and torsos 0.03-0.12 (one turned vase 0.009).
+LOOSE = 0.02
+ROUNDS = 3  # rounds of new quadrics; each runs STEPS Gauss-Newton steps on them
+STEPS = 5
+MAX_WEIGHT = 100.0  # a skin term weighs at most this many break terms (a few points fitting too well)
+SKIN_LIKELIHOOD = 0.5  # surface points of fracture likelihood under this are skin
+
+
+def _frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    t1 = np.cross(normal, [1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.cross(normal, [0.0, 1.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    return t1, np.cross(normal, t1)
+
+
+def seam_surfaces(skin: np.ndarray, skin_normals: np.ndarray, points: np.ndarray, point_normals: np.ndarray,
+                  near: float, reach: float, max_fit: float) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """Quadric patches of one piece's skin extended to the other's skin points near it.
+
+    Parameters
+    ----------
+    skin, skin_normals : (N, 3) float, the first piece's skin points and outward unit normals
+    points, point_normals : (M, 3) float, the other piece's skin points and normals, in the same frame
+    near, reach, max_fit : lengths (see the module's constants)
+
+    Returns
+    -------
+    list of (index into points, (4,) frame origin and (3, 3) axes [t1, t2, n], (6,) coefficients of
+    h = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2), for each point that extends the skin.
+    """
+    from scipy.spatial import cKDTree
+
+    if len(skin) < MIN_FIT or len(points) == 0:
+        return []
+    tree = cKDTree(skin)
+    d, nearest = tree.query(points)
+    out = []
+    for i in np.flatnonzero(d < near):
+        idx = np.asarray(tree.query_ball_point(skin[nearest[i]], reach), np.int64)
+        idx = idx[skin_normals[idx] @ point_normals[i] > AGREE] if len(idx) else idx
+        if len(idx) < MIN_FIT:
+            continue
+        centre = skin[idx].mean(0)
+        m = skin_normals[idx].mean(0)
+        m /= np.linalg.norm(m)
+        axes = np.stack([*_frame(m), m])
+        u, v, h = ((skin[idx] - centre) @ axes.T).T
+        design = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], 1)
+        coef = np.linalg.lstsq(design, h, rcond=None)[0]
+        fit = float(np.sqrt(np.mean((design @ coef - h) ** 2)))
+        if fit > max_fit:
+            continue
+        uq, vq, hq = axes @ (points[i] - centre)
+        if abs(hq - _height(coef, uq, vq)) > GATE * max(fit, 1e-12):
+            continue
+        out.append((int(i), centre, axes, coef))
+    return out
+
+
+def _height(coef, u, v):
+    return coef[0] + coef[1] * u + coef[2] * v + coef[3] * u * u + coef[4] * u * v + coef[5] * v * v
+
+
+def _planes(patches, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each (index, centre, axes, coef) patch, the point's residual over the quadric and the
+    quadric's unit normal below it: (K,) indices, (K,) signed heights, (K, 3) normals."""
+    if not patches:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    idx = np.array([p[0] for p in patches])
+    centre = np.array([p[1] for p in patches])
+    axes = np.array([p[2] for p in patches])
+    coef = np.array([p[3] for p in patches]).T
+    u, v, h = np.einsum("kij,kj->ik", axes, points[idx] - centre)
+    du = coef[1] + 2 * coef[3] * u + coef[4] * v
+    dv = coef[2] + coef[4] * u + 2 * coef[5] * v
+    normal = axes[:, 2] - du[:, None] * axes[:, 0] - dv[:, None] * axes[:, 1]
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    # the height over the quadric, along its normal (first order)
+    return idx, (h - _height(coef, u, v)) * (normal * axes[:, 2]).sum(1), normal
+
+
+def looseness(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, transform: np.ndarray,
+              cutoff: float, index) -> float:
+    """The weakest direction of the point-to-plane normal equations of the (N, 3) source moved by
+    the (4, 4) transform onto the (M, 3) target with (M, 3) normals, as a share of the strongest
+    (rotation in units of the source's RMS radius); 1.0 where fewer than 6 points are in reach."""
+    jac, _, _ = _fracture_terms(source, target, target_normals, transform, cutoff, index)
+    if len(jac) < 6:
+        return 1.0
+    values = np.linalg.eigvalsh(jac.T @ jac)
+    return float(values[0] / values[-1]) if values[-1] > 0 else 1.0
+
+
+def _fracture_terms(source, target, target_normals, transform, cutoff, index):
+    moved = apply(transform, source)
+    idx, dist = index.query(moved)
+    idx, keep = np.asarray(idx, np.int64), np.asarray(dist) < cutoff
+    centre = moved.mean(0)
+    radius = float(np.sqrt(((moved - centre) ** 2).sum(1).mean())) or 1.0
+    n = target_normals[idx[keep]]
+    jac = np.concatenate([np.cross((moved[keep] - centre) / radius, n), n], 1)
+    res = -np.einsum("ij,ij->i", moved[keep] - target[idx[keep]], n) / radius
+    return jac, res, (centre, radius)
+
+
+def seam_polish(fracture_a: np.ndarray, fracture_normals_a: np.ndarray, fracture_b: np.ndarray,
+                skin_a: tuple[np.ndarray, np.ndarray], skin_b: tuple[np.ndarray, np.ndarray],
+                transform: np.ndarray, cutoff: float, scale: float, index) -> tuple[np.ndarray, int]:
+    """The (4, 4) transform carrying b onto a polished on a's fracture planes and on the skin across
+    the seam, both ways, and the number of skin points that held it in the last step.
+
+    Parameters
+    ----------
+    fracture_a, fracture_normals_a : (P, 3) float, a's fracture sample and its outward normals
+    fracture_b : (Q, 3) float, b's fracture sample (in b's frame)
+    skin_a, skin_b : ((N, 3), (N, 3)) float, each piece's skin points and outward normals, own frame
+    transform : (4, 4) float, the fit to start from
+    cutoff : fracture pairs farther than this are left out
+    scale : the pair's scale (NEAR, REACH, MAX_FIT are shares of it)
+    index : nearest-neighbour index of fracture_a (`backend.nearest_index`)
+    """
+    transform = np.array(transform, np.float64)
+    held = 0
+    for _ in range(ROUNDS):
+        moved_skin = apply(transform, skin_b[0]), skin_b[1] @ transform[:3, :3].T
+        # a's skin extended to b's points (frame a), and b's to a's (frame b)
+        on_a = seam_surfaces(*skin_a, *moved_skin, NEAR * scale, REACH * scale, MAX_FIT * scale)
+        back = np.linalg.inv(transform)
+        on_b = seam_surfaces(*skin_b, apply(back, skin_a[0]), skin_a[1] @ back[:3, :3].T,
+                             NEAR * scale, REACH * scale, MAX_FIT * scale)
+        for _ in range(STEPS):
+            jac_f, res_f, (centre, radius) = _fracture_terms(fracture_b, fracture_a, fracture_normals_a,
+                                                             transform, cutoff, index)
+            if len(res_f) < 6:
+                return transform, held
+            # b's skin points (moved) over a's quadrics: moving b moves the points
+            idx, h, n = _planes(on_a, apply(transform, skin_b[0]))
+            p = apply(transform, skin_b[0][idx])
+            jac_1 = np.concatenate([np.cross((p - centre) / radius, n), n], 1)
+            # a's skin points over b's quadrics, taken into a's frame: moving b moves the surface
+            back = np.linalg.inv(transform)
+            idx2, h2, n2 = _planes(on_b, apply(back, skin_a[0]))
+            n2 = n2 @ transform[:3, :3].T
+            jac_2 = -np.concatenate([np.cross((skin_a[0][idx2] - centre) / radius, n2), n2], 1)
+            jac_s = np.concatenate([jac_1, jac_2])
+            res_s = -np.concatenate([h, h2]) / radius
+            held = len(res_s)
+            weight = 0.0
+            if held:
+                # each term by the inverse of its variance: the skin is smooth, the break is not
+                weight = float(np.mean(res_f ** 2) / max(np.mean(res_s ** 2), 1e-30))
+                weight = min(weight, MAX_WEIGHT)
+            lhs = jac_f.T @ jac_f + weight * jac_s.T @ jac_s + 1e-12 * np.eye(6)
+            x = np.linalg.solve(lhs, jac_f.T @ res_f + weight * jac_s.T @ res_s)
+            turn = axis_rotation(x[:3] / (np.linalg.norm(x[:3]) or 1.0), float(np.linalg.norm(x[:3])))
+            step = np.eye(4)
+            step[:3, :3] = turn
+            step[:3, 3] = centre - turn @ centre + radius * x[3:]
+            transform = step @ transform
+            if np.linalg.norm(x) < 1e-9:
+                break
+    return transform, held
+
