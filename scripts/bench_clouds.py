@@ -4,6 +4,7 @@
     python scripts/bench_clouds.py                                  # 10 pairs, with and without normals
     python scripts/bench_clouds.py --pairs 12 --first 12 --modes none   # held-out pairs 12-23
     python scripts/bench_clouds.py --source corpus --pairs 12           # an independent generator
+    python scripts/bench_clouds.py --pairs 192 --modes none --workers 16  # a process a pair, 16 at a time
 
 Pair k is relicgpu.synth's two-piece {vase, torso, slab}[k % 3] of seed k // 3 (4,000 faces,
 scanner noise 0.05% of the size), or with --source corpus the clean two-piece object of
@@ -13,7 +14,8 @@ relicgpu.synth.corpus family {rough, smooth, voronoi, vessel}-clean [k % 4] of s
 (`open`). A pair is right when `match_pair` accepts it with a rotation error under 2 degrees and
 the moved piece's points within 1% RMS of their true place, lengths relative to the object's
 size (the largest side of its assembled bounding box). A pair accepted at a wrong pose is
-counted apart: it is worse than a miss.
+counted apart: it is worse than a miss. The summary gives each mode's counts over all pairs and
+per shape (synth) or family (corpus).
 """
 from __future__ import annotations
 
@@ -87,6 +89,36 @@ def score(a, b, truth, transform) -> tuple[float, float]:
     return rot, float(np.sqrt(((placed - true) ** 2).sum(1).mean()) / size)
 
 
+def run_pair(k: int, mode: str, points: int, noise: float, source: str, backend: str) -> dict:
+    """match_pair on pair k in `mode`, scored (a row of the JSON)."""
+    from relicgpu import match_pair
+
+    a, b, truth = make_pair(k, mode, points, noise, source)
+    t0 = time.perf_counter()
+    m = match_pair(a, b, backend=backend)
+    rot, rms = score(a, b, truth, m.transform)
+    return {"mode": mode, "pair": k, "case": pair_name(k, source), "accepted": bool(m.accepted),
+            "rotation_error_deg": rot, "rms": rms, "reason": m.reason, "seconds": time.perf_counter() - t0}
+
+
+def is_right(row: dict) -> bool:
+    return row["accepted"] and row["rotation_error_deg"] < 2 and row["rms"] < 0.01
+
+
+def summarise(rows: list[dict]) -> dict:
+    """{mode: {"right", "wrong_accepted", "pairs", "by_kind": {shape or family: [right, wrong, pairs]}}}."""
+    summary = {}
+    for row in rows:
+        s = summary.setdefault(row["mode"], {"right": 0, "wrong_accepted": 0, "pairs": 0, "by_kind": {}})
+        kind = s["by_kind"].setdefault(row["case"].split(" seed ")[0], [0, 0, 0])
+        right, wrong = is_right(row), row["accepted"] and not is_right(row)
+        s["right"] += right
+        s["wrong_accepted"] += wrong
+        s["pairs"] += 1
+        kind[0], kind[1], kind[2] = kind[0] + right, kind[1] + wrong, kind[2] + 1
+    return summary
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=int, default=10)
@@ -96,32 +128,35 @@ def main(argv=None) -> int:
     ap.add_argument("--noise", type=float, default=0.0005)
     ap.add_argument("--source", choices=["synth", "corpus"], default="synth")
     ap.add_argument("--backend", default="numpy")
+    ap.add_argument("--workers", type=int, default=1, help="pairs matched at once, a process each")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
 
-    from relicgpu import match_pair
+    jobs = [(k, mode, args.points, args.noise, args.source, args.backend)
+            for mode in args.modes.split(",") for k in range(args.first, args.first + args.pairs)]
+    rows = []
 
-    rows, summary = [], {}
-    for mode in args.modes.split(","):
-        right = wrong = 0
-        for k in range(args.first, args.first + args.pairs):
-            a, b, truth = make_pair(k, mode, args.points, args.noise, args.source)
-            t0 = time.perf_counter()
-            m = match_pair(a, b, backend=args.backend)
-            rot, rms = score(a, b, truth, m.transform)
-            good = rot < 2 and rms < 0.01
-            right += bool(m.accepted and good)
-            wrong += bool(m.accepted and not good)
-            tag = "right" if m.accepted and good else ("WRONG ACCEPTED" if m.accepted else "rejected")
-            rows.append({"mode": mode, "pair": k, "case": pair_name(k, args.source), "accepted": bool(m.accepted),
-                         "rotation_error_deg": rot, "rms": rms, "reason": m.reason, "seconds": time.perf_counter() - t0})
-            print(f"  {mode:7s} {pair_name(k, args.source)}: rot {rot:7.2f} deg, rms {rms:.4f}, {tag} "
-                  f"({m.reason}) {rows[-1]['seconds']:.1f} s", file=sys.stderr, flush=True)
-        summary[mode] = {"right": right, "wrong_accepted": wrong, "pairs": args.pairs}
+    def report(row):
+        rows.append(row)
+        tag = "right" if is_right(row) else ("WRONG ACCEPTED" if row["accepted"] else "rejected")
+        print(f"  {row['mode']:7s} {row['case']}: rot {row['rotation_error_deg']:7.2f} deg, rms {row['rms']:.4f}, "
+              f"{tag} ({row['reason']}) {row['seconds']:.1f} s", file=sys.stderr, flush=True)
+
+    if args.workers > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(args.workers) as pool:
+            for row in pool.map(run_pair, *zip(*jobs)):
+                report(row)
+    else:
+        for job in jobs:
+            report(run_pair(*job))
+    summary = summarise(rows)
     print(f"\n{args.source} pairs {args.first}-{args.first + args.pairs - 1}, {args.points} points, noise {args.noise}, "
           f"backend {args.backend}")
     for mode, s in summary.items():
-        print(f"  {mode:8s} {s['right']}/{s['pairs']} right, {s['wrong_accepted']} accepted at a wrong pose")
+        kinds = ", ".join(f"{kind} {r}/{n}" + (f" ({w} wrong)" if w else "") for kind, (r, w, n) in s["by_kind"].items())
+        print(f"  {mode:8s} {s['right']}/{s['pairs']} right, {s['wrong_accepted']} accepted at a wrong pose: {kinds}")
     if args.json:
         from relicgpu.io.files import atomic_write_json
         atomic_write_json(args.json, {"summary": summary, "rows": rows})

@@ -31,6 +31,7 @@ CASES = [
     ("bench_group.py", "--seeds 0 --train-seeds 1 --no-supervised --cache ''", None),
     ("bench_mosaic.py", "--pairs 1 --json {tmp}/mosaic.json", "mosaic.json"),
     ("bench_clouds.py", "--pairs 1 --first 2 --modes normals,open --json {tmp}/clouds.json", "clouds.json"),
+    ("bench_clouds.py", "--pairs 2 --first 2 --modes normals --workers 2 --json {tmp}/clouds.json", "clouds.json"),
     ("bench_pointcloud.py", "--points 20000 --source slab --json {tmp}/pc.json", "pc.json"),
     ("bench_search.py", "--families rough-clean --pieces 3 --seeds 0 --faces 600 --set patch_turns=6 "
      "--json {tmp}/search.json",
