@@ -119,6 +119,9 @@ class Params:
     # eigenvalue of the normal tensor there) by at least min_outline (None: never)
     residual_band: float = 1.6
     min_outline: float | None = 0.3
+    # ... or where the skin beside the seam continues the partner's (`seam.skin_continuation`) by
+    # at least min_skin (None: never)
+    min_skin: float | None = 0.2
     outline_radius: float = 0.05
     outline_spread: float = 0.12
     # assembly: a verified match whose sharp creases meet the partner's (`verify.rim_agreement` of

@@ -131,15 +131,20 @@ def noisy_pair():
 
 def test_a_rescanned_pair_is_accepted_on_its_outline_and_only_there(noisy_pair):
     """The right fit of a rescanned break mates less closely than max_rmse allows; it passes on its
-    outline, scored half, and is refused for its residual when outlines are not consulted."""
+    outline, scored half, on its skin where outlines are not consulted, and is refused for its
+    residual where neither is."""
     r, truth = noisy_pair
     a, b = r.fragments
     m = pl.match_pair(a, b, Params(), "numpy")
     assert m.accepted and m.reason.startswith("accepted on its outline"), m.reason
     assert rotation_angle_deg(m.transform[:3, :3] @ truth[:3, :3].T) < 2.0
     assert abs(m.score - pl.OUTLINE_SCORE * m.overlap * (1 - m.penetration)) < 1e-9
-    strict = pl.match_pair(a, b, Params(min_outline=None), "numpy")
+    strict = pl.match_pair(a, b, Params(min_outline=None, min_skin=None), "numpy")
     assert not strict.accepted and strict.reason.startswith("residual"), strict.reason
+    # its skin beside the seam runs on into the partner's: accepted on that where outlines are off
+    skin = pl.match_pair(a, b, Params(min_outline=None), "numpy")
+    assert skin.accepted and skin.reason.startswith("accepted on its skin"), skin.reason
+    assert rotation_angle_deg(skin.transform[:3, :3] @ truth[:3, :3].T) < 2.0
 
 
 def test_assembly_joins_the_match_whose_rims_agree_before_a_better_scored_one(halves):

@@ -288,21 +288,30 @@ def _verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, 
 def _outline_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, failed):
     """The verification of a fit refused only for its residual (`failed`), accepted where its
     residual lies within `residual_band` times the bound and the two outlines agree by at least
-    `min_outline` (`Params`); None otherwise. A rescanned break's right fit mates less closely
-    than a clean one's, and its sharp edges are rounded away; where the surfaces turn at a
-    working length the two pieces' outlines still meet."""
-    if params.min_outline is None or a.outline is None or b.outline is None:
+    `min_outline`, or the skin beside the seam continues the partner's by at least `min_skin`
+    (`Params`); None otherwise. A rescanned break's right fit mates less closely than a clean
+    one's, and its sharp edges are rounded away; where the surfaces turn at a working length the
+    two pieces' outlines still meet, and the skins on both sides of the seam still run on."""
+    outlines = params.min_outline is not None and a.outline is not None and b.outline is not None
+    if not outlines and params.min_skin is None:
         return None
     if failed.rmse > params.residual_band * params.max_rmse * scale:
         return None  # out of the band: no second verification needed to know
     ver = _verify_mesh(a, b, transform, be, params, scale, index_of, params.residual_band * params.max_rmse)
     if not ver.accepted:
         return None
-    agree = rim_agreement(replace(a, creases=a.outline), replace(b, creases=b.outline), transform,
-                          params.contact_distance * scale, index_of)
-    if agree < params.min_outline:
-        return None
-    return replace(ver, reason=f"accepted on its outline (outlines agree {agree:.2f}; {failed.reason})")
+    contact = params.contact_distance * scale
+    if outlines:
+        agree = rim_agreement(replace(a, creases=a.outline), replace(b, creases=b.outline), transform, contact,
+                              index_of)
+        if agree >= params.min_outline:
+            return replace(ver, reason=f"accepted on its outline (outlines agree {agree:.2f}; {failed.reason})")
+    if params.min_skin is not None:
+        skin = seam.skin_continuation(a, b, transform, contact, scale)
+        if skin >= params.min_skin:
+            return replace(ver, reason=f"accepted on its skin (the skin beside the seam continues {skin:.2f}; "
+                                       f"{failed.reason})")
+    return None
 
 
 def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict):

@@ -12,6 +12,11 @@ over the skin points within `REACH` of the seam, fitted once per round), each te
 the inverse of its residual variance against the break's, the skin's outliers trimmed (`TRIM`).
 It runs only where the fit is loose (`looseness` under `LOOSE`): where the break pins every
 direction the skin has nothing to add, and a worn or chipped rim could pull the fit.
+
+`skin_continuation` asks the same quadrics a question instead: how much of the surface beside
+the seam runs on into the partner's. It needs no segmentation and holds on rescanned breaks,
+whose creases are noise: a mesh fit refused only for its residual is accepted on it
+(`pipeline._outline_fit`, `Params.min_skin`).
 """
 from __future__ import annotations
 
@@ -78,14 +83,7 @@ def seam_surfaces(skin: np.ndarray, skin_normals: np.ndarray, points: np.ndarray
         idx = idx[skin_normals[idx] @ point_normals[i] > AGREE] if len(idx) else idx
         if len(idx) < MIN_FIT:
             continue
-        centre = skin[idx].mean(0)
-        m = skin_normals[idx].mean(0)
-        m /= np.linalg.norm(m)
-        axes = np.stack([*_frame(m), m])
-        u, v, h = ((skin[idx] - centre) @ axes.T).T
-        design = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], 1)
-        coef = np.linalg.lstsq(design, h, rcond=None)[0]
-        fit = float(np.sqrt(np.mean((design @ coef - h) ** 2)))
+        centre, axes, coef, fit = _quadric(skin[idx], skin_normals[idx])
         if fit > max_fit:
             continue
         uq, vq, hq = axes @ (points[i] - centre)
@@ -93,6 +91,19 @@ def seam_surfaces(skin: np.ndarray, skin_normals: np.ndarray, points: np.ndarray
             continue
         out.append((int(i), centre, axes, coef))
     return out
+
+
+def _quadric(points: np.ndarray, normals: np.ndarray):
+    """A quadric height field over (K, 3) points along their mean (K, 3) normal: (3,) origin, (3, 3)
+    axes [t1, t2, n], (6,) coefficients (`_height`) and the fit's RMS residual."""
+    centre = points.mean(0)
+    m = normals.mean(0)
+    m /= np.linalg.norm(m)
+    axes = np.stack([*_frame(m), m])
+    u, v, h = ((points - centre) @ axes.T).T
+    design = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], 1)
+    coef = np.linalg.lstsq(design, h, rcond=None)[0]
+    return centre, axes, coef, float(np.sqrt(np.mean((design @ coef - h) ** 2)))
 
 
 def _height(coef, u, v):
@@ -202,3 +213,42 @@ def seam_polish(fracture_a: np.ndarray, fracture_normals_a: np.ndarray, fracture
                 break
     return transform, held
 
+
+# A fit's skin continues its partner's where a free point (farther than 2 contact distances from
+# the other surface) near the other's free surface lies within CONTINUES (a share of the scale) of
+# the other's quadric extended to it.
+CONTINUES = 0.004
+
+
+def skin_continuation(a, b, transform: np.ndarray, contact: float, scale: float) -> float:
+    """How much of the surface beside the seam continues the partner's: of the free points of
+    each SurfaceSample (b's moved by the (4, 4) transform) within NEAR of the other's free
+    surface, the share that lies on the other's free surface extended to it (a quadric over its
+    points within REACH, normals within AGREE). No segmentation is asked for: at the right fit of
+    a fresh break the skins on both sides meet smoothly; a face laid on a face with the rims
+    apart puts one piece's side across the other's face. 0.0 where no free point is near."""
+    from scipy.spatial import cKDTree
+
+    moved, moved_normals = apply(transform, b.surface), b.normals @ transform[:3, :3].T
+    gap_b, _ = cKDTree(a.surface).query(moved)
+    gap_a, _ = cKDTree(moved).query(a.surface)
+    free_a, free_b = gap_a > 2 * contact, gap_b > 2 * contact
+    near = continues = 0
+    for (skin, normals), (points, point_normals) in (
+            ((a.surface[free_a], a.normals[free_a]), (moved[free_b], moved_normals[free_b])),
+            ((moved[free_b], moved_normals[free_b]), (a.surface[free_a], a.normals[free_a]))):
+        if len(skin) < MIN_FIT or len(points) == 0:
+            continue
+        tree = cKDTree(skin)
+        d, nearest = tree.query(points)
+        close = np.flatnonzero(d < NEAR * scale)
+        near += len(close)
+        for i in close:
+            idx = np.asarray(tree.query_ball_point(skin[nearest[i]], REACH * scale), np.int64)
+            idx = idx[normals[idx] @ point_normals[i] > AGREE] if len(idx) else idx
+            if len(idx) < MIN_FIT:
+                continue
+            centre, axes, coef, _ = _quadric(skin[idx], normals[idx])
+            uq, vq, hq = axes @ (points[i] - centre)
+            continues += abs(hq - _height(coef, uq, vq)) < CONTINUES * scale
+    return continues / near if near else 0.0
