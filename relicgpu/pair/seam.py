@@ -47,7 +47,6 @@ STEPS = 5
 # untrimmed, 1.2 and 0.5 at 3).
 TRIM = 3.0
 MAX_WEIGHT = 100.0  # a skin term weighs at most this many break terms (a few points fitting too well)
-SKIN_LIKELIHOOD = 0.5  # surface points of fracture likelihood under this are skin
 
 
 def _frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -57,7 +56,7 @@ def _frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def seam_surfaces(skin: np.ndarray, skin_normals: np.ndarray, points: np.ndarray, point_normals: np.ndarray,
-                  near: float, reach: float, max_fit: float) -> list[tuple[int, np.ndarray, np.ndarray]]:
+                  near: float, reach: float, max_fit: float) -> list[tuple]:
     """Quadric patches of one piece's skin extended to the other's skin points near it.
 
     Parameters
@@ -68,29 +67,35 @@ def seam_surfaces(skin: np.ndarray, skin_normals: np.ndarray, points: np.ndarray
 
     Returns
     -------
-    list of (index into points, (4,) frame origin and (3, 3) axes [t1, t2, n], (6,) coefficients of
+    list of (index into points, (3,) origin, (3, 3) axes [t1, t2, n], (6,) coefficients of
     h = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2), for each point that extends the skin.
     """
+    return [(i, centre, axes, coef) for i, centre, axes, coef, fit, off in
+            _extensions(skin, skin_normals, points, point_normals, near, reach)[1]
+            if fit <= max_fit and off <= GATE * max(fit, 1e-12)]
+
+
+def _extensions(skin, skin_normals, points, point_normals, near: float, reach: float) -> tuple[int, list]:
+    """The points within `near` of the skin, counted, and for each whose nearest skin point has
+    at least MIN_FIT skin points within `reach` turned within AGREE of it: (index, quadric origin,
+    axes, coefficients, the quadric's RMS residual, the point's distance from it)."""
     from scipy.spatial import cKDTree
 
     if len(skin) < MIN_FIT or len(points) == 0:
-        return []
+        return 0, []
     tree = cKDTree(skin)
     d, nearest = tree.query(points)
+    close = np.flatnonzero(d < near)
     out = []
-    for i in np.flatnonzero(d < near):
+    for i in close:
         idx = np.asarray(tree.query_ball_point(skin[nearest[i]], reach), np.int64)
         idx = idx[skin_normals[idx] @ point_normals[i] > AGREE] if len(idx) else idx
         if len(idx) < MIN_FIT:
             continue
         centre, axes, coef, fit = _quadric(skin[idx], skin_normals[idx])
-        if fit > max_fit:
-            continue
         uq, vq, hq = axes @ (points[i] - centre)
-        if abs(hq - _height(coef, uq, vq)) > GATE * max(fit, 1e-12):
-            continue
-        out.append((int(i), centre, axes, coef))
-    return out
+        out.append((int(i), centre, axes, coef, fit, abs(hq - _height(coef, uq, vq))))
+    return len(close), out
 
 
 def _quadric(points: np.ndarray, normals: np.ndarray):
@@ -232,23 +237,11 @@ def skin_continuation(a, b, transform: np.ndarray, contact: float, scale: float)
     moved, moved_normals = apply(transform, b.surface), b.normals @ transform[:3, :3].T
     gap_b, _ = cKDTree(a.surface).query(moved)
     gap_a, _ = cKDTree(moved).query(a.surface)
-    free_a, free_b = gap_a > 2 * contact, gap_b > 2 * contact
+    free_a = (a.surface[gap_a > 2 * contact], a.normals[gap_a > 2 * contact])
+    free_b = (moved[gap_b > 2 * contact], moved_normals[gap_b > 2 * contact])
     near = continues = 0
-    for (skin, normals), (points, point_normals) in (
-            ((a.surface[free_a], a.normals[free_a]), (moved[free_b], moved_normals[free_b])),
-            ((moved[free_b], moved_normals[free_b]), (a.surface[free_a], a.normals[free_a]))):
-        if len(skin) < MIN_FIT or len(points) == 0:
-            continue
-        tree = cKDTree(skin)
-        d, nearest = tree.query(points)
-        close = np.flatnonzero(d < NEAR * scale)
-        near += len(close)
-        for i in close:
-            idx = np.asarray(tree.query_ball_point(skin[nearest[i]], REACH * scale), np.int64)
-            idx = idx[normals[idx] @ point_normals[i] > AGREE] if len(idx) else idx
-            if len(idx) < MIN_FIT:
-                continue
-            centre, axes, coef, _ = _quadric(skin[idx], normals[idx])
-            uq, vq, hq = axes @ (points[i] - centre)
-            continues += abs(hq - _height(coef, uq, vq)) < CONTINUES * scale
+    for skin, others in ((free_a, free_b), (free_b, free_a)):
+        count, found = _extensions(*skin, *others, NEAR * scale, REACH * scale)
+        near += count
+        continues += sum(off < CONTINUES * scale for *_, off in found)
     return continues / near if near else 0.0
