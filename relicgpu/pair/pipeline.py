@@ -162,9 +162,8 @@ def _held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
                         params.penetration_depth * scale, index_of)
     if not ver.accepted:
         return replace(result, timings=timings)
-    base = result.overlap * (1.0 - result.penetration)
-    weight = result.score / base if base > 0 else 1.0
-    return replace(result, transform=transform, score=weight * ver.overlap * (1.0 - ver.penetration), rmse=ver.rmse,
+    # a cloud fit scores its overlap less its interpenetration (no reading or outline weight)
+    return replace(result, transform=transform, score=ver.overlap * (1.0 - ver.penetration), rmse=ver.rmse,
                    overlap=ver.overlap, penetration=ver.penetration, timings=timings,
                    reason=f"{result.reason} (loose on its break: the skin across the seam held it, {held} points)")
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .icp import apply, axis_rotation
+from .icp import apply, axis_rotation, invert
 
 # Skin points of one piece within NEAR of the other's skin are held to it, extrapolated from the
 # other's skin points within REACH of the nearest one, turned within AGREE (cosine) of the point's
@@ -179,7 +179,7 @@ def seam_polish(fracture_a: np.ndarray, fracture_normals_a: np.ndarray, fracture
         moved_skin = apply(transform, skin_b[0]), skin_b[1] @ transform[:3, :3].T
         # a's skin extended to b's points (frame a), and b's to a's (frame b)
         on_a = seam_surfaces(*skin_a, *moved_skin, NEAR * scale, REACH * scale, MAX_FIT * scale)
-        back = np.linalg.inv(transform)
+        back = invert(transform)
         on_b = seam_surfaces(*skin_b, apply(back, skin_a[0]), skin_a[1] @ back[:3, :3].T,
                              NEAR * scale, REACH * scale, MAX_FIT * scale)
         for _ in range(STEPS):
@@ -192,7 +192,7 @@ def seam_polish(fracture_a: np.ndarray, fracture_normals_a: np.ndarray, fracture
             p = apply(transform, skin_b[0][idx])
             jac_1 = np.concatenate([np.cross((p - centre) / radius, n), n], 1)
             # a's skin points over b's quadrics, taken into a's frame: moving b moves the surface
-            back = np.linalg.inv(transform)
+            back = invert(transform)
             idx2, h2, n2 = _planes(on_b, apply(back, skin_a[0]))
             n2 = n2 @ transform[:3, :3].T
             jac_2 = -np.concatenate([np.cross((skin_a[0][idx2] - centre) / radius, n2), n2], 1)
