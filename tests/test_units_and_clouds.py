@@ -242,20 +242,35 @@ def test_crease_regions_split_a_cloud_at_its_creases_with_and_without_normals():
             assert len(region) > (0.9 if given is not None else 0.6) * np.sum(truth == labels.argmax())
 
 
-def test_a_clean_smooth_break_is_matched_on_its_crease_regions():
-    """A break with no roughness (a smooth cut of the independent corpus, not relicgpu.synth)."""
+def _corpus_cloud_pair(family, seed, pair, with_normals=True):
+    """A clean two-piece object of the independent corpus (not relicgpu.synth) as sparse clouds,
+    drawn as scripts/bench_clouds.py draws its pair `pair`, and the transform carrying b onto a."""
     import trimesh
 
     from relicgpu.synth import corpus
     from relicgpu.cloud.points import cloud_fragment
 
-    r = corpus.generate("smooth-clean", pieces=2, seed=0, faces=4000)
+    r = corpus.generate(family, pieces=2, seed=seed, faces=4000)
     frags = []
     for i, f in enumerate(r.fragments):
         mesh = f.to_trimesh()
-        p, face = trimesh.sample.sample_surface(mesh, 2500, seed=100 + i)
-        p = p + np.random.default_rng(7 + i).normal(size=p.shape) * 0.0005 * f.size
-        frags.append(cloud_fragment(f.name, p, mesh.face_normals[face]))
+        p, face = trimesh.sample.sample_surface(mesh, 2500, seed=100 * pair + i)
+        p = p + np.random.default_rng(7 * pair + i).normal(size=p.shape) * 0.0005 * f.size
+        frags.append(cloud_fragment(f.name, p, mesh.face_normals[face] if with_normals else None))
+    return frags, np.linalg.inv(r.poses[0]) @ r.poses[1]
+
+
+def test_a_clean_smooth_break_is_matched_on_its_crease_regions():
+    """A break with no roughness (a smooth cut of the independent corpus, not relicgpu.synth)."""
+    frags, truth = _corpus_cloud_pair("smooth-clean", 0, 1)
     result = match_pair(*frags, backend="numpy")
-    assert result.reason == "accepted (crease regions)"
-    _assert_right(result, frags[1], np.linalg.inv(r.poses[0]) @ r.poses[1])
+    assert result.reason.startswith("accepted (crease regions"), result.reason
+    _assert_right(result, frags[1], truth)
+
+
+def test_a_piece_with_no_rough_point_is_matched_on_its_wide_pick():
+    """The second piece's first fracture pick is empty (no point over its median roughness): the
+    wide pick's fit is verified on the wide pick, not on nothing (it raised before)."""
+    frags, truth = _corpus_cloud_pair("rough-clean", 16, 64)
+    result = match_pair(*frags, backend="numpy")
+    _assert_right(result, frags[1], truth)

@@ -187,17 +187,20 @@ def _match_strict(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
     neither finds a fit)."""
     # sparse clouds: fracture picked strictly (fewer skin points) can find a contact the wider
     # pick's votes missed (a thin wall's narrow break), and a wide pick one where the first pick
-    # holds too little of a large break; the fit must still pass on the first pick
-    strict = _match_prepared(replace(pa, sample=pa.strict_sample), replace(pb, sample=pb.strict_sample), params, be,
+    # holds too little of a large break; the fit must still pass on the first pick (where the first
+    # pick holds a point of both: a piece with no point over its median roughness picks none)
+    found = (pa.strict_sample, pb.strict_sample)
+    strict = _match_prepared(replace(pa, sample=found[0]), replace(pb, sample=found[1]), params, be,
                              None, scale, dict(timings))
     if not strict.accepted:
-        wide = [cloud_sample(p.fragment.vertices, getattr(p.fragment, "normals", None), params, scale, WIDE_SPREADS)
-                for p in (pa, pb)]
-        strict = _match_prepared(replace(pa, sample=wide[0]), replace(pb, sample=wide[1]), params, be, None, scale,
+        found = [cloud_sample(p.fragment.vertices, getattr(p.fragment, "normals", None), params, scale, WIDE_SPREADS)
+                 for p in (pa, pb)]
+        strict = _match_prepared(replace(pa, sample=found[0]), replace(pb, sample=found[1]), params, be, None, scale,
                                  dict(timings))
     if not strict.accepted:
         return result
-    ver = verify_clouds(pa.sample, pb.sample, strict.transform, be, params.contact_distance * scale,
+    first = (pa.sample, pb.sample) if len(pa.sample.fracture) and len(pb.sample.fracture) else found
+    ver = verify_clouds(*first, strict.transform, be, params.contact_distance * scale,
                         params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale)
     score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return replace(strict, accepted=ver.accepted, score=score, rmse=ver.rmse, overlap=ver.overlap,
