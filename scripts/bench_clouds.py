@@ -5,6 +5,7 @@
     python scripts/bench_clouds.py --pairs 12 --first 12 --modes none   # held-out pairs 12-23
     python scripts/bench_clouds.py --source corpus --pairs 12           # an independent generator
     python scripts/bench_clouds.py --pairs 192 --modes none --workers 16  # a process a pair, 16 at a time
+    python scripts/bench_clouds.py --source corpus --set min_skin=None  # Params changed for every pair
 
 Pair k is relicgpu.synth's two-piece {vase, torso, slab}[k % 3] of seed k // 3 (4,000 faces,
 scanner noise 0.05% of the size), or with --source corpus the clean two-piece object of
@@ -25,6 +26,8 @@ import sys
 import time
 
 import numpy as np
+
+from relicgpu.params import parse_assignments
 
 SHAPES = ("vase", "torso", "slab")
 
@@ -89,13 +92,15 @@ def score(a, b, truth, transform) -> tuple[float, float]:
     return rot, float(np.sqrt(((placed - true) ** 2).sum(1).mean()) / size)
 
 
-def run_pair(k: int, mode: str, points: int, noise: float, source: str, backend: str) -> dict:
-    """match_pair on pair k in `mode`, scored (a row of the JSON)."""
+def run_pair(k: int, mode: str, points: int, noise: float, source: str, backend: str,
+             changes: dict | None = None) -> dict:
+    """match_pair on pair k in `mode` with Params changed by `changes`, scored (a row of the JSON)."""
     from relicgpu import match_pair
+    from relicgpu.params import Params
 
     a, b, truth = make_pair(k, mode, points, noise, source)
     t0 = time.perf_counter()
-    m = match_pair(a, b, backend=backend)
+    m = match_pair(a, b, Params().with_(**(changes or {})), backend=backend)
     rot, rms = score(a, b, truth, m.transform)
     return {"mode": mode, "pair": k, "case": pair_name(k, source), "accepted": bool(m.accepted),
             "rotation_error_deg": rot, "rms": rms, "reason": m.reason, "seconds": time.perf_counter() - t0}
@@ -129,10 +134,16 @@ def main(argv=None) -> int:
     ap.add_argument("--source", choices=["synth", "corpus"], default="synth")
     ap.add_argument("--backend", default="numpy")
     ap.add_argument("--workers", type=int, default=1, help="pairs matched at once, a process each")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="a Params field for every pair (repeatable), e.g. min_skin=None")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
+    try:
+        changes = parse_assignments(args.set)
+    except ValueError as err:
+        ap.error(f"--set {err}")
 
-    jobs = [(k, mode, args.points, args.noise, args.source, args.backend)
+    jobs = [(k, mode, args.points, args.noise, args.source, args.backend, changes)
             for mode in args.modes.split(",") for k in range(args.first, args.first + args.pairs)]
     rows = []
 

@@ -11,12 +11,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..backends import resolve
-from .icp import batched_icp, facing_poses, ransac_poses, refine_point_to_plane, same_pose
+from .icp import (apply, batched_icp, facing_poses, invert, ransac_poses, refine_point_to_plane, rotation_angle_deg,
+                  same_pose)
 from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params
-from .cloudmatch import (AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS, WIDE_SPREADS,
-                         cloud_params, cloud_sample, cloud_skin, verify_clouds)
+from .cloudmatch import (AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS, SKIN_FITS,
+                         SKIN_RIVAL_DEG, SKIN_RIVALS, WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin,
+                         verify_clouds)
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .ppf import vote_poses
 from . import seam
@@ -144,6 +146,8 @@ def _held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
     """An accepted cloud fit that its break leaves loose (`seam.looseness` under `seam.LOOSE`: a
     thin board's narrow band) polished on the skin across the seam (`seam.seam_polish`), where
     the polished fit passes verification too (result: kept otherwise)."""
+    if "seam" in result.timings or not (len(pa.sample.fracture) and len(pb.sample.fracture)):
+        return result  # held by its skin already (`_by_skin`), or found on a pick of its own (`_match_strict`)
     index_of = index_cache(be)
     contact = params.contact_distance * scale
     index = index_of(pa.sample.fracture)
@@ -210,34 +214,82 @@ def _match_strict(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
 def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
                    result: PairMatch) -> PairMatch:
     """Two clouds matched with each crease-bounded region of a against each of b as the fracture
-    (a clean break is no rougher than the skin). The accepted fit whose regions touch over the
-    largest share wins, unless a fit at another pose touches nearly as widely: a symmetric break
-    cannot tell them apart, and a guess is worse than no answer (result: kept where none wins)."""
+    (a clean break is no rougher than the skin). Of the accepted fits of two scans with normals,
+    the one whose skin runs on into the partner's across the seam (`seam.skin_continuation`, at
+    least `Params.min_skin`) wins where no fit at another turn continues nearly as well
+    (`_by_skin`); else the one whose regions touch over the largest share, unless a fit at another
+    pose touches nearly as widely: a symmetric break cannot tell them apart, and a guess is worse
+    than no answer (result: kept where none wins)."""
     # a flat break fits its partner at one turn only, which its outline alone decides
     turns = params.with_(patch_turns=REGION_TURNS)
-    accepted = []  # (overlap, transform, verification)
+    contact = params.contact_distance * scale
+    accepted = []  # (overlap, transform, verification, region sample a, region sample b, residual bound, index_of)
     for sa, patch_a, rough_a in pa.regions:
         for sb, patch_b, rough_b in pb.regions:
             fits, index_of = _candidate_fits(replace(pa, sample=sa, patches=[patch_a]),
                                              replace(pb, sample=sb, patches=[patch_b]), turns, be, None, scale,
                                              dict(timings))
+            bound = REGION_RESIDUAL * np.hypot(rough_a, rough_b)
             for transform, *_ in fits:
-                ver = verify_clouds(sa, sb, transform, be, params.contact_distance * scale,
-                                    REGION_RESIDUAL * np.hypot(rough_a, rough_b), REGION_OVERLAP,
+                ver = verify_clouds(sa, sb, transform, be, contact, bound, REGION_OVERLAP,
                                     params.penetration_depth * scale, index_of, min_facing=REGION_FACING)
                 if ver.accepted:
-                    accepted.append((ver.overlap, transform, ver))
+                    accepted.append((ver.overlap, transform, ver, sa, sb, bound, index_of))
     if not accepted:
         return result
     accepted.sort(key=lambda x: -x[0])
-    overlap, transform, ver = accepted[0]
-    rivals = [o for o, t, _ in accepted[1:] if not same_pose(t, transform, params.contact_distance * scale)]
+    # with scanned normals only: on clouds without them the skin chose 5 wrong turns for 10 right
+    # ones (corpus pairs 0-287, docs/benchmarks.md)
+    scanned = all(getattr(p.fragment, "normals", None) is not None for p in (pa, pb))
+    by_skin = _by_skin(accepted, params, be, scale, timings) if scanned else None
+    if by_skin is not None:
+        return by_skin
+    overlap, transform, ver, *_ = accepted[0]
+    rivals = [o for o, t, *_ in accepted[1:] if not same_pose(t, transform, contact)]
     fit = PairMatch(transform, True, overlap * (1.0 - ver.penetration), ver.rmse, overlap, ver.penetration,
                     np.zeros((0, 2), np.int64), -1, -1, "accepted (crease regions)", timings)
     if rivals and rivals[0] >= AMBIGUOUS_SHARE * overlap:
         return replace(fit, accepted=False, score=0.0, reason="ambiguous: crease regions fit at two poses alike "
                        f"(overlap {overlap:.2f} and {rivals[0]:.2f})")
     return fit
+
+
+def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict) -> PairMatch | None:
+    """The region fit (of `_match_regions`' accepted list, widest touching first) whose skin
+    continues the partner's best, polished on that skin (`seam.seam_polish`: a flat break leaves
+    its slide and its turn in the plane to the outline alone), where it continues by at least
+    `Params.min_skin`, every fit at another turn (over SKIN_RIVAL_DEG) continues less than
+    SKIN_RIVALS times as much, and the polished fit verifies; None otherwise."""
+    if params.min_skin is None:
+        return None
+    contact = params.contact_distance * scale
+    distinct = []
+    for fit in accepted:
+        if len(distinct) < SKIN_FITS and not any(same_pose(fit[1], d[1], contact) for d in distinct):
+            distinct.append(fit)
+    skins = [seam.skin_continuation(sa, sb, t, contact, scale) for _, t, _, sa, sb, *_ in distinct]
+    best = int(np.argmax(skins))
+    transform = distinct[best][1]
+    rivals = [s for s, (_, t, *_) in zip(skins, distinct)
+              if rotation_angle_deg(t[:3, :3] @ transform[:3, :3].T) > SKIN_RIVAL_DEG]
+    if skins[best] < params.min_skin or (rivals and max(rivals) >= SKIN_RIVALS * skins[best]):
+        return None
+    _, _, _, sa, sb, bound, index_of = distinct[best]
+    t0 = time.perf_counter()
+    free = [seam.free_surface(sa.surface, sa.normals, apply(transform, sb.surface), contact),
+            seam.free_surface(sb.surface, sb.normals, apply(invert(transform), sa.surface), contact)]
+    transform, held = seam.seam_polish(sa.fracture, sa.fracture_normals, sb.fracture, free[0], free[1], transform,
+                                       contact, scale, index_of(sa.fracture))
+    after = seam.skin_continuation(sa, sb, transform, contact, scale)
+    timings = {**timings, "seam": time.perf_counter() - t0}
+    ver = verify_clouds(sa, sb, transform, be, contact, bound, REGION_OVERLAP, params.penetration_depth * scale,
+                        index_of, min_facing=REGION_FACING)
+    if not ver.accepted:
+        return None
+    return PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap, ver.penetration,
+                     np.zeros((0, 2), np.int64), -1, -1, f"accepted (crease regions; its skin continues the "
+                     f"partner's {skins[best]:.2f} across the seam, {after:.2f} once held by it, {held} points)",
+                     timings)
 
 
 def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict) -> PairMatch:

@@ -225,6 +225,16 @@ def seam_polish(fracture_a: np.ndarray, fracture_normals_a: np.ndarray, fracture
 CONTINUES = 0.004
 
 
+def free_surface(points: np.ndarray, normals: np.ndarray, other: np.ndarray, contact: float):
+    """The (K, 3) points and normals of a piece's (N, 3) surface points and normals farther than
+    2 contact distances from the other piece's (M, 3) points (same frame): its skin beside the
+    seam and beyond, wherever the fit leaves it free."""
+    from scipy.spatial import cKDTree
+
+    free = cKDTree(other).query(points)[0] > 2 * contact
+    return points[free], normals[free]
+
+
 def skin_continuation(a, b, transform: np.ndarray, contact: float, scale: float) -> float:
     """How much of the surface beside the seam continues the partner's: of the free points of
     each SurfaceSample (b's moved by the (4, 4) transform) within NEAR of the other's free
@@ -232,13 +242,9 @@ def skin_continuation(a, b, transform: np.ndarray, contact: float, scale: float)
     points within REACH, normals within AGREE). No segmentation is asked for: at the right fit of
     a fresh break the skins on both sides meet smoothly; a face laid on a face with the rims
     apart puts one piece's side across the other's face. 0.0 where no free point is near."""
-    from scipy.spatial import cKDTree
-
     moved, moved_normals = apply(transform, b.surface), b.normals @ transform[:3, :3].T
-    gap_b, _ = cKDTree(a.surface).query(moved)
-    gap_a, _ = cKDTree(moved).query(a.surface)
-    free_a = (a.surface[gap_a > 2 * contact], a.normals[gap_a > 2 * contact])
-    free_b = (moved[gap_b > 2 * contact], moved_normals[gap_b > 2 * contact])
+    free_a = free_surface(a.surface, a.normals, moved, contact)
+    free_b = free_surface(moved, moved_normals, a.surface, contact)
     near = continues = 0
     for skin, others in ((free_a, free_b), (free_b, free_a)):
         count, found = _extensions(*skin, *others, NEAR * scale, REACH * scale)
