@@ -120,7 +120,8 @@ class Params:
     residual_band: float = 1.6
     min_outline: float | None = 0.3
     # ... or where the skin beside the seam continues the partner's (`seam.skin_continuation`) by
-    # at least min_skin (None: never)
+    # at least min_skin (None: never). Clouds with normals: the crease-region fit whose skin
+    # continues most, at least this much, is taken (`pipeline._by_skin`; None: never)
     min_skin: float | None = 0.2
     outline_radius: float = 0.05
     outline_spread: float = 0.12
