@@ -278,12 +278,13 @@ def test_a_piece_with_no_rough_point_is_matched_on_its_wide_pick(seed):
     _assert_right(result, frags[1], truth)
 
 
-def test_a_flat_break_is_turned_by_the_skin_across_its_seam():
-    """A flat cut through a rounded solid (the corpus's Voronoi cell, scanned with normals): its
-    crease regions fit at several turns alike, and it was refused as ambiguous; the skin beside
-    the seam runs on into the partner's at one turn only, and holds the slide the flat face
-    leaves free."""
-    frags, truth = _corpus_cloud_pair("voronoi-clean", 0, 2)
+@pytest.mark.parametrize("with_normals", [True, False])
+def test_a_flat_break_is_turned_by_the_skin_across_its_seam(with_normals):
+    """A flat cut through a rounded solid (the corpus's Voronoi cell, scanned with and without
+    normals): its crease regions fit at several turns alike, and it was refused as ambiguous; the
+    skin beside the seam runs on into the partner's at one turn only, and holds the slide the
+    flat face leaves free."""
+    frags, truth = _corpus_cloud_pair("voronoi-clean", 0, 2, with_normals)
     result = match_pair(*frags, backend="numpy")
     assert "its skin continues the partner's" in result.reason, result.reason
     _assert_right(result, frags[1], truth)

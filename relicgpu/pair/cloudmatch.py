@@ -78,6 +78,11 @@ AMBIGUOUS_SHARE = 0.9
 SKIN_FITS = 8
 SKIN_RIVAL_DEG = 15.0
 SKIN_RIVALS = 0.6
+# Normals estimated from the points see less of the skin beside a seam: there a rival turn must
+# continue less than this share (corpus clouds without normals, smooth and voronoi pairs 0-287:
+# at 0.6 the rule gave 10 more right and 5 more wrong, at 0.3 10 more right and none wrong;
+# docs/benchmarks.md).
+SKIN_RIVALS_ESTIMATED = 0.3
 
 
 def crease_regions(points: np.ndarray, normals: np.ndarray, given: bool) -> list[np.ndarray]:

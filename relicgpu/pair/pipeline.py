@@ -17,8 +17,8 @@ from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params
 from .cloudmatch import (AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS, SKIN_FITS,
-                         SKIN_RIVAL_DEG, SKIN_RIVALS, WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin,
-                         verify_clouds)
+                         SKIN_RIVAL_DEG, SKIN_RIVALS, SKIN_RIVALS_ESTIMATED, WIDE_SPREADS, cloud_params, cloud_sample,
+                         cloud_skin, verify_clouds)
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .ppf import vote_poses
 from . import seam
@@ -214,12 +214,12 @@ def _match_strict(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
 def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
                    result: PairMatch) -> PairMatch:
     """Two clouds matched with each crease-bounded region of a against each of b as the fracture
-    (a clean break is no rougher than the skin). Of the accepted fits of two scans with normals,
-    the one whose skin runs on into the partner's across the seam (`seam.skin_continuation`, at
-    least `Params.min_skin`) wins where no fit at another turn continues nearly as well
-    (`_by_skin`); else the one whose regions touch over the largest share, unless a fit at another
-    pose touches nearly as widely: a symmetric break cannot tell them apart, and a guess is worse
-    than no answer (result: kept where none wins)."""
+    (a clean break is no rougher than the skin). Of the accepted fits, the one whose skin runs on
+    into the partner's across the seam (`seam.skin_continuation`, at least `Params.min_skin`) wins
+    where no fit at another turn continues nearly as well (`_by_skin`); else the one whose regions
+    touch over the largest share, unless a fit at another pose touches nearly as widely: a
+    symmetric break cannot tell them apart, and a guess is worse than no answer (result: kept
+    where none wins)."""
     # a flat break fits its partner at one turn only, which its outline alone decides
     turns = params.with_(patch_turns=REGION_TURNS)
     contact = params.contact_distance * scale
@@ -238,10 +238,8 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     if not accepted:
         return result
     accepted.sort(key=lambda x: -x[0])
-    # with scanned normals only: on clouds without them the skin chose 5 wrong turns for 10 right
-    # ones (corpus pairs 0-287, docs/benchmarks.md)
     scanned = all(getattr(p.fragment, "normals", None) is not None for p in (pa, pb))
-    by_skin = _by_skin(accepted, params, be, scale, timings) if scanned else None
+    by_skin = _by_skin(accepted, params, be, scale, timings, SKIN_RIVALS if scanned else SKIN_RIVALS_ESTIMATED)
     if by_skin is not None:
         return by_skin
     overlap, transform, ver, *_ = accepted[0]
@@ -254,12 +252,12 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     return fit
 
 
-def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict) -> PairMatch | None:
+def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict, rivals_share: float) -> PairMatch | None:
     """The region fit (of `_match_regions`' accepted list, widest touching first) whose skin
     continues the partner's best, polished on that skin (`seam.seam_polish`: a flat break leaves
     its slide and its turn in the plane to the outline alone), where it continues by at least
     `Params.min_skin`, every fit at another turn (over SKIN_RIVAL_DEG) continues less than
-    SKIN_RIVALS times as much, and the polished fit verifies; None otherwise."""
+    `rivals_share` times as much, and the polished fit verifies; None otherwise."""
     if params.min_skin is None:
         return None
     contact = params.contact_distance * scale
@@ -272,7 +270,7 @@ def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict) ->
     transform = distinct[best][1]
     rivals = [s for s, (_, t, *_) in zip(skins, distinct)
               if rotation_angle_deg(t[:3, :3] @ transform[:3, :3].T) > SKIN_RIVAL_DEG]
-    if skins[best] < params.min_skin or (rivals and max(rivals) >= SKIN_RIVALS * skins[best]):
+    if skins[best] < params.min_skin or (rivals and max(rivals) >= rivals_share * skins[best]):
         return None
     _, _, _, sa, sb, bound, index_of = distinct[best]
     t0 = time.perf_counter()
