@@ -11,12 +11,15 @@ near the other's skin is held to the other's surface extrapolated to it (a quadr
 over the skin points within `REACH` of the seam, fitted once per round), each term weighed by
 the inverse of its residual variance against the break's, the skin's outliers trimmed (`TRIM`).
 It runs only where the fit is loose (`looseness` under `LOOSE`): where the break pins every
-direction the skin has nothing to add, and a worn or chipped rim could pull the fit.
+direction the skin has nothing to add, and a worn or chipped rim could pull the fit. A flat break
+is loose in its own plane, and a cloud's flat-break fit is polished so too (`pipeline._by_skin`,
+on the `free_surface` of both pieces).
 
 `skin_continuation` asks the same quadrics a question instead: how much of the surface beside
 the seam runs on into the partner's. It needs no segmentation and holds on rescanned breaks,
 whose creases are noise: a mesh fit refused only for its residual is accepted on it
-(`pipeline._outline_fit`, `Params.min_skin`).
+(`pipeline._outline_fit`, `Params.min_skin`), and of a flat cloud break's region fits, which fit
+at several turns alike, it picks the turn (`pipeline._by_skin`).
 """
 from __future__ import annotations
 
