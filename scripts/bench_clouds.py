@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from relicgpu.params import parse_assignments
+from relicgpu.params import Params, parse_assignments
 
 SHAPES = ("vase", "torso", "slab")
 
@@ -96,7 +96,6 @@ def run_pair(k: int, mode: str, points: int, noise: float, source: str, backend:
              changes: dict | None = None) -> dict:
     """match_pair on pair k in `mode` with Params changed by `changes`, scored (a row of the JSON)."""
     from relicgpu import match_pair
-    from relicgpu.params import Params
 
     a, b, truth = make_pair(k, mode, points, noise, source)
     t0 = time.perf_counter()

@@ -261,10 +261,7 @@ def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict, ri
     if params.min_skin is None:
         return None
     contact = params.contact_distance * scale
-    distinct = []
-    for fit in accepted:
-        if len(distinct) < SKIN_FITS and not any(same_pose(fit[1], d[1], contact) for d in distinct):
-            distinct.append(fit)
+    distinct = [accepted[k] for k in _distinct([fit[1] for fit in accepted], range(len(accepted)), SKIN_FITS, contact)]
     skins = [seam.skin_continuation(sa, sb, t, contact, scale) for _, t, _, sa, sb, *_ in distinct]
     best = int(np.argmax(skins))
     transform = distinct[best][1]
