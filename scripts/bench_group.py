@@ -1,4 +1,4 @@
-"""Benchmark of fragment grouping (issue 7) on synthetic mixtures.
+"""Benchmark of fragment grouping (issue 7) on synthetic mixtures and corpus heaps (issue 16).
 
 Mixtures: per seed, 3 to 8 objects of different shapes: the built-in vase / torso / slab
 and five closed solids written here (tube, ring, brick, capsule, bowl), each scaled by its
@@ -19,13 +19,20 @@ tessellations differ a little on the original surface.
 
     python scripts/bench_group.py                 # full grid: 5 mixture seeds
     python scripts/bench_group.py --seeds 0 1 --train-seeds 1000 --no-supervised
-    python scripts/bench_group.py --fit 10 11 ... 29 40 ... 59   # refit grouping.FEATURE_SCALES and PAIR_WEIGHTS
+    python scripts/bench_group.py --corpus smooth-noisy vessel-coarse --seeds 0 1 2   # heaps of corpus families
+    python scripts/bench_group.py --fit 10 11 ... 29 40 ... 59 --fit-corpus FAMILY ... --describe-cache DIR
     python scripts/bench_group.py --assembly-only --assembly-faces 3000   # assemble --group vs alone vs heap
 
+Corpus heaps (`--corpus`, `corpus_heap`): four objects of one `relicgpu.synth.corpus` family, each
+its own solid, scaled and scanned at one resolution like the mixtures, 5-6 pieces each (about 22
+fragments, the size of the issue's heaps of another generator).
+
 The pair model of the unsupervised grouping (grouping.FEATURE_SCALES, PAIR_WEIGHTS) was fitted
-with `--fit` on mixture seeds 10-29 and 40-59, and its cut (LINK_CUT, LEFTOVER_*) chosen on them,
-never on the scored seeds 0-4 (seeds 1 and 2, and 30-39, were looked at to diagnose failures);
-`--fit` also prints a cross-check: fitted on one half of those seeds, the ARI on the other half.
+with `--fit` on mixture seeds 10-29 and 40-59 and corpus heaps (seeds 0-19) of ten families, never
+on the scored mixture seeds 0-4 nor on the corpus families smooth-noisy and vessel-coarse (kept out
+of every fit and choice) nor on corpus seeds 20 and up. `--fit` also prints two cross-checks:
+fitted on one half of the mixture seeds, the ARI on the other half; and each corpus fracture kind
+left out of the fit in turn, the ARI on its families' heaps.
 """
 from __future__ import annotations
 
@@ -152,6 +159,34 @@ def mixture(seed, edge, cache):
     return [frags[i] for i in order], [labels[i] for i in order]
 
 
+# Heaps of the corpus (relicgpu.synth.corpus, fractures this project's generator did not make):
+# CORPUS_OBJECTS objects of one family (one material, one scanner), each its own solid (pebble,
+# block, jar in turn; vessels for the vessel families) scaled log-uniformly in [0.5, 2], 5-6 pieces,
+# CORPUS_FACES faces a piece at scale 1 and 5 pieces (one scanner resolution: x scale^2 x 5 / pieces;
+# the coarse scans keep their few hundred).
+CORPUS_OBJECTS = 4
+CORPUS_FACES = 1500
+
+
+def corpus_heap(family: str, seed: int):
+    """The fragments of a heap of one corpus family and each one's object, in a random order."""
+    import zlib
+    from relicgpu.synth import corpus
+
+    rng = np.random.default_rng([seed, zlib.crc32(family.encode())])
+    frags, labels = [], []
+    for k in range(CORPUS_OBJECTS):
+        scale = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0))))
+        pieces = int(rng.integers(5, 7))
+        faces = max(200, int(round(CORPUS_FACES * scale ** 2 * 5 / pieces)))
+        r = corpus.generate(family, pieces=pieces, seed=1000 * seed + k, faces=faces)
+        obj = f"{k}{r.params['solid']}{scale:.2f}"
+        frags += [Fragment(f"{obj}_{f.name}", f.vertices * scale, f.faces) for f in r.fragments]
+        labels += [obj] * len(r.fragments)
+    order = rng.permutation(len(frags))
+    return [frags[i] for i in order], [labels[i] for i in order]
+
+
 def object_edges(frags, labels):
     """Per object of a heap: (median edge length on fracture faces, on the other faces), the
     faces told apart by relicgpu.pair.segment as the grouping sees them."""
@@ -220,37 +255,86 @@ def bench_assembly(faces: int, pieces: int = 5) -> None:
         print(f"{name:<34} {t:>7.1f} {sc.part_accuracy:>8.3f} {sc.pair_precision:>9.3f} {sc.pair_recall:>8.3f}")
 
 
-def fit(seeds, edge, cache) -> None:
-    """Fit grouping.FEATURE_SCALES and PAIR_WEIGHTS on these mixture seeds and print them, with a
-    two-fold check: fitted on one half of the seeds, the ARI of group_fragments' clustering on the other."""
-    heaps = []
-    for s in seeds:
-        frags, labels = mixture(s, edge, cache)
-        heaps.append((D.describe_all(frags, progress=True), labels))
-        print(f"described seed {s}: {len(frags)} fragments", file=sys.stderr)
+def described(heap: str, seed: int, edge, cache, describe_cache: Path | None):
+    """(descriptors, labels) of mixture `seed` (heap "synth") or of the corpus heap of family
+    `heap`, kept as a pickle in describe_cache when given (stale once describe changes)."""
+    import pickle
+
+    path = None if describe_cache is None else describe_cache / f"{heap}_{seed}.pkl"
+    if path is not None and path.exists():
+        with open(path, "rb") as fh:
+            return pickle.load(fh)
+    frags, labels = mixture(seed, edge, cache) if heap == "synth" else corpus_heap(heap, seed)
+    out = (D.describe_all(frags), labels)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "wb") as fh:
+            pickle.dump(out, fh)
+    return out
+
+
+def heap_ari(heap, scales=None, weights=None, cut=None) -> float:
+    """ARI of group_fragments' clustering of described (descriptors, labels) under a pair model."""
+    d, labels = heap
+    p = G.same_object_probability(G.pair_features(d, scales), weights)
+    return G.adjusted_rand_index(labels, G.cluster(1 - p, None, G.LINK_CUT if cut is None else cut)[0])
+
+
+def fit(seeds, edge, cache, corpus_families=(), corpus_seeds=(), describe_cache=None, cut=None) -> None:
+    """Fit grouping.FEATURE_SCALES and PAIR_WEIGHTS on these mixture seeds and corpus heaps and
+    print them, with two checks: fitted on one half of the mixture seeds, the ARI on the other
+    half; and with each fracture kind of the corpus left out, the ARI on its families' heaps."""
+    heaps = {}
+    todo = [("synth", s) for s in seeds] + [(f, s) for f in corpus_families for s in corpus_seeds]
+    for k, (h, s) in enumerate(todo):
+        heaps[(h, s)] = described(h, s, edge, cache, describe_cache)
+        print(f"described {h} seed {s} ({k + 1}/{len(todo)}): {len(heaps[(h, s)][1])} fragments", file=sys.stderr)
 
     def fitted(hs):
         scales = G.fit_feature_scales(hs)
         return scales, G.fit_pair_model(hs, scales)
 
-    def ari(d, labels, scales, weights):
-        p = G.same_object_probability(G.pair_features(d, scales), weights)
-        return G.adjusted_rand_index(labels, G.cluster(1 - p)[0])
-
-    scales, w = fitted(heaps)
-    half = len(heaps) // 2
-    cross = []
-    for train, test in ((heaps[:half], heaps[half:]), (heaps[half:], heaps[:half])):
-        if train and test:
-            sc, wt = fitted(train)
-            cross += [ari(d, l, sc, wt) for d, l in test]
+    scales, w = fitted(list(heaps.values()))
     print(f"FEATURE_SCALES = ({', '.join(f'{x:.4f}' for x in scales)})")
     print(f"PAIR_WEIGHTS = ({', '.join(f'{x:.3f}' for x in w)})")
     print(f"# per knot block (z, then max(z - t, 0) for t in {G.Z_KNOTS}): {', '.join(D.FEATURE_NAMES)}, gaps of "
           f"{', '.join(D.GAP_NAMES)}; then patch_match, intercept")
+    synth = [k for k in heaps if k[0] == "synth"]
+    rest = [heaps[k] for k in heaps if k[0] != "synth"]
+    half = len(synth) // 2
+    cross = []
+    for train, test in ((synth[:half], synth[half:]), (synth[half:], synth[:half])):
+        if train and test:
+            sc, wt = fitted([heaps[k] for k in train] + rest)
+            cross += [heap_ari(heaps[k], sc, wt, cut) for k in test]
     if cross:
-        print(f"two-fold ARI over seeds {list(seeds)}: mean {np.mean(cross):.3f}, min {np.min(cross):.3f} "
-              f"({', '.join(f'{a:.3f}' for a in cross)})")
+        print(f"two-fold ARI over mixture seeds {list(seeds)}: mean {np.mean(cross):.3f}, min {np.min(cross):.3f}")
+    for kind in sorted({f.split("-")[0] for f in corpus_families}):
+        sc, wt = fitted([v for k, v in heaps.items() if not k[0].startswith(kind + "-")])
+        for f in [f for f in corpus_families if f.startswith(kind + "-")]:
+            a = [heap_ari(heaps[(f, s)], sc, wt, cut) for s in corpus_seeds]
+            print(f"{kind} left out: {f} ARI mean {np.mean(a):.3f}, min {np.min(a):.3f} over {len(a)} heaps")
+
+
+def corpus_table(families, seeds) -> int:
+    """ARI of group_fragments on heaps of corpus families, a row per family."""
+    print(f"Unsupervised grouping of corpus heaps ({CORPUS_OBJECTS} objects of one family, 5-6 pieces each), "
+          f"seeds {list(seeds)}")
+    print(f"{'family':>15} {'heaps':>5} {'frags':>5} {'groups':>6} {'ARI mean':>8} {'ARI min':>7} {'group s':>7}")
+    for family in families:
+        aris, groups, frags, secs = [], [], [], []
+        for s in seeds:
+            fr, labels = corpus_heap(family, s)
+            t0 = time.perf_counter()
+            g = G.group_fragments(fr)
+            secs.append(time.perf_counter() - t0)
+            aris.append(G.adjusted_rand_index(labels, g.labels))
+            groups.append(int(g.labels.max()) + 1)
+            frags.append(len(fr))
+            print(f"{family} seed {s}: {len(fr)} fragments -> {groups[-1]} groups, ARI {aris[-1]:.3f}", file=sys.stderr)
+        print(f"{family:>15} {len(seeds):>5} {np.mean(frags):>5.1f} {np.mean(groups):>6.1f} {np.mean(aris):>8.3f} "
+              f"{np.min(aris):>7.3f} {np.median(secs):>7.1f}", flush=True)
+    return 0
 
 
 def main(argv=None) -> int:
@@ -267,6 +351,13 @@ def main(argv=None) -> int:
     ap.add_argument("--no-supervised", action="store_true")
     ap.add_argument("--fit", type=int, nargs="+", default=None, metavar="SEED",
                     help="fit the pair model on these mixture seeds, print it, and stop")
+    ap.add_argument("--corpus", nargs="+", default=None, metavar="FAMILY",
+                    help="score heaps of these relicgpu.synth.corpus families at --seeds instead (see corpus_heap)")
+    ap.add_argument("--fit-corpus", nargs="+", default=(), metavar="FAMILY",
+                    help="with --fit: also fit on heaps of these corpus families")
+    ap.add_argument("--fit-corpus-seeds", type=int, nargs="+", default=list(range(20)))
+    ap.add_argument("--describe-cache", default="",
+                    help="with --fit: keep each heap's descriptors here (stale once relicgpu.heap.describe changes)")
     ap.add_argument("--assembly", action="store_true",
                     help="also: assemble a 3-object mixture with grouping, without, and each object alone")
     ap.add_argument("--assembly-faces", type=int, default=2000, help="faces per fragment there (default: 2000)")
@@ -275,8 +366,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     cache = Path(args.cache) if args.cache else None
     if args.fit:
-        fit(args.fit, args.edge, cache)
+        fit(args.fit, args.edge, cache, args.fit_corpus, args.fit_corpus_seeds,
+            Path(args.describe_cache) if args.describe_cache else None)
         return 0
+    if args.corpus:
+        return corpus_table(args.corpus, args.seeds)
 
     if args.assembly_only:
         bench_assembly(args.assembly_faces, args.assembly_pieces)

@@ -29,6 +29,9 @@ CASES = [
      "--work {tmp}/work --json {tmp}/readings.json", "readings.json"),
     ("bench_fusion.py", "--pairs 2 --skip-full --out {tmp}/fusion --cache-dir {tmp}/cache", None),
     ("bench_group.py", "--seeds 0 --train-seeds 1 --no-supervised --cache ''", None),
+    ("bench_group.py", "--corpus voronoi-coarse --seeds 0", None),
+    ("bench_group.py", "--fit 16 --fit-corpus voronoi-coarse rough-coarse --fit-corpus-seeds 0 1 --cache '' "
+     "--describe-cache {tmp}/described", "described/rough-coarse_1.pkl"),
     ("bench_mosaic.py", "--pairs 1 --json {tmp}/mosaic.json", "mosaic.json"),
     ("bench_clouds.py", "--pairs 1 --first 2 --modes normals,open --json {tmp}/clouds.json", "clouds.json"),
     ("bench_clouds.py", "--pairs 2 --first 2 --modes normals --workers 2 --json {tmp}/clouds.json", "clouds.json"),
@@ -57,6 +60,22 @@ def test_script_runs_on_tiny_inputs(script, args, output, tmp_path):
     assert run.stdout.strip() or run.stderr.strip()
     if output:
         assert (tmp_path / output).is_file()
+
+
+def test_bench_group_corpus_heap_holds_four_objects_of_one_family():
+    """A corpus heap: four objects of distinct solids (the fourth repeats the first's kind of solid
+    at another scale), 5-6 pieces each, shuffled."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from bench_group import corpus_heap
+
+    frags, labels = corpus_heap("rough-coarse", 3)
+    objects = sorted(set(labels))
+    assert len(objects) == 4 and len(frags) == len(labels)
+    assert all(5 <= labels.count(o) <= 6 for o in objects)
+    assert len({o[1:-4] for o in objects[:3]}) == 3  # pebble, block, jar
+    assert labels != sorted(labels)
+    sizes = {o: np.median([f.size for f, l in zip(frags, labels) if l == o]) for o in objects}
+    assert max(sizes.values()) > 1.3 * min(sizes.values())  # scaled apart
 
 
 def test_bench_search_facets_name_each_contact():

@@ -56,16 +56,15 @@ from ..io.fragment import Fragment, FragmentError
 from ..io.load import Batch, read_batch
 
 # Per feature, how far apart two fragments of one object typically are: 1.4826 x the median
-# absolute deviation from their object's median, pooled over the objects of synthetic heaps
-# (`scripts/bench_group.py --fit 10 ... 29 40 ... 59`). A pair's z is its difference over this. Objects that
-# are alike all over (a tube, a bowl) set these; pieces of a varied one (a torso's chest and
-# limbs) lie many scales apart, which the interval gaps, the spreads and the leftover stage of
-# `cluster` are for.
-# Floored at SCALE_FLOOR: synthetic walls are exact, and a 1% difference (in log length or
-# asinh curvature) is below what a scan resolves.
+# absolute deviation from their object's median, pooled over the objects of the fitting heaps
+# (PAIR_WEIGHTS below). A pair's z is its difference over this. Objects that are alike all over
+# (a tube, a bowl) set these; pieces of a varied one (a torso's chest and limbs) lie many scales
+# apart, which the interval gaps, the spreads and the leftover stage of `cluster` are for.
+# Floored at SCALE_FLOOR: a 1% difference (in log length or asinh curvature) is below what a
+# scan resolves.
 SCALE_FLOOR = 0.01
-FEATURE_SCALES = (0.0100, 0.0100, 0.0100, 0.0100, 0.0100, 0.0336, 0.0513, 0.0359, 0.2470, 0.0700, 0.1638, 0.0770,
-                  0.0764, 0.0325, 0.0100, 0.0100, 0.0556, 0.0159, 0.0534, 0.0100, 0.0100)
+FEATURE_SCALES = (0.0754, 0.0340, 0.0332, 0.1814, 0.1657, 0.2012, 0.0671, 0.0598, 0.3519, 0.0661, 0.1610, 0.1232,
+                  0.1230, 0.1856, 0.0862, 0.0826, 0.0649, 0.2554, 0.3039, 0.0355, 0.1523)
 COLOUR_SCALE = 0.02
 COLOUR_WEIGHT = -1.0  # logit per unit of the mean colour z (not fitted: no coloured training heaps)
 Z_CAP = 8.0  # beyond this a feature says "different" no louder
@@ -79,26 +78,29 @@ Z_KNOTS = (1.0, 3.0)
 PATCH_TOLERANCE = 0.3
 # Logistic model of "one object" over pair_inputs: per knot block (z, then max(z - t, 0) for t in
 # Z_KNOTS) the z of FEATURE_NAMES then of the GAP_NAMES gaps, then the patch match, last the
-# intercept; class-balanced, L2 1.0, fitted by `scripts/bench_group.py --fit 10 ... 29 40 ... 59` on
-# heaps of synthetic mixture seeds 10-29 and 40-59, scanned at one resolution (the benchmark scores
-# seeds 0-4; seeds 30-39 served to diagnose failures, never to fit).
-# Depends on relicgpu.pair.segment (which faces are fracture): refit when it changes. Two-fold (fitted on
-# seeds 10-29, scored on 40-59, and the other way): mean ARI 0.971, min 0.791.
-PAIR_WEIGHTS = (-0.338, 0.262, 0.195, 0.210, 0.200, 1.781, -0.099, -0.362, 0.101, 0.061, -0.261, 0.093, 0.128, 0.811,
-                -0.070, 0.853, -0.076, 0.319, 0.326, 0.509, 0.370, -0.199, 0.788, -2.419, -2.457, -0.942, -1.950,
-                -0.190, -0.076, 0.132, -2.207, -0.986, -1.652, 0.038, 0.187, -0.531, 0.253, 0.622, -0.249, -0.425,
-                -1.056, -0.539, -1.041, 0.296, -0.172, 0.305, 0.319, -0.477, 0.176, -0.530, 2.752, 3.407, 0.861,
-                2.447, 0.392, -0.264, -0.453, 2.070, 0.695, -0.336, -0.189, -0.064, 0.266, -0.813, -0.381, 0.233,
-                0.476, 0.495, 0.641, 0.187, -0.967, -0.363, -1.159, -0.933, 0.222, -0.121, -0.361, -0.615, -1.248,
-                -0.168, -0.722, 0.898, 9.119)
+# intercept; class-balanced, L2 1.0. Fitted by `scripts/bench_group.py --fit 10 ... 29 40 ... 59
+# --fit-corpus FAMILY ...` on heaps of synthetic mixture seeds 10-29 and 40-59 (this project's
+# generator, one scan resolution) together with corpus heaps (relicgpu.synth.corpus, 4 objects of
+# one family, seeds 0-19) of ten of its twelve families; smooth-noisy and vessel-coarse were kept
+# out of every fit and choice. Synth mixtures alone had given a model at ARI 0.45 on held-out
+# corpus kinds (docs/benchmarks.md, "Grouping heaps of other fractures").
+# Depends on relicgpu.pair.segment (which faces are fracture): refit when it changes.
+PAIR_WEIGHTS = (-0.261, -1.104, -0.695, -0.232, -0.502, 0.525, -0.102, -0.010, 0.062, -0.012, 0.117, -0.044, -0.331,
+                -0.208, -0.580, -0.478, -0.284, -0.022, -0.065, 0.412, 0.044, 0.788, 0.503, 0.119, -0.907, -0.162,
+                -0.876, 0.251, 0.898, 0.382, 0.208, 0.296, -0.869, -0.102, -0.224, -0.349, -0.045, -0.238, 0.032,
+                0.286, 0.191, 0.500, 0.601, 0.341, 0.159, -0.139, -0.911, 0.107, -1.254, -0.621, -0.444, 1.178,
+                -0.062, 0.946, 0.144, 0.244, 0.326, 0.002, 0.216, 0.432, -0.002, 0.202, 0.350, -0.142, 0.193, 0.005,
+                -0.088, 0.261, 0.003, -0.234, -0.200, -0.238, 0.320, 0.441, -0.263, 0.562, 0.075, 0.281, -0.569,
+                0.317, -0.142, 0.961, 7.371)
 # Clusters merge while the mean probability of one object between them is above 1 - LINK_CUT
 # (average linkage). Fragments left in groups of at most LEFTOVER_SIZE are then clustered among
 # themselves at LEFTOVER_CUT: pieces unlike the rest of their own object (a torso's limb and its
-# chest) find each other there rather than staying alone. Chosen with the model below by two-fold
-# on seeds 10-29 and 40-59 (fitted on one half, scored on the other): mean ARI 0.971 (min 0.791) at
-# 0.3 / 3 / 0.9; 0.960 (min 0.667) at 0.4; 0.968 at 0.25; 0.952 at 0.5; single linkage weighted
-# 0.967, complete 0.922-0.944; leftover settings 2-5 / 0.8-0.95 within 0.01 of one another.
-LINK_CUT = 0.3
+# chest) find each other there rather than staying alone. LEFTOVER_* chosen with the synth-only
+# model by two-fold on mixture seeds 10-29 and 40-59 (settings 2-5 / 0.8-0.95 within 0.01 of one
+# another). LINK_CUT chosen with the model above, each corpus fracture kind left out of the fit in
+# turn and scored on its families' heaps (mean ARI over the ten families 0.544 / 0.562 / 0.559 /
+# 0.549 at 0.3 / 0.4 / 0.45 / 0.5; two-fold on the mixtures 0.920 / 0.902 / 0.904 / 0.889).
+LINK_CUT = 0.4
 LEFTOVER_SIZE = 3
 LEFTOVER_CUT = 0.9
 
