@@ -63,8 +63,8 @@ from ..io.load import Batch, read_batch
 # Floored at SCALE_FLOOR: a 1% difference (in log length or asinh curvature) is below what a
 # scan resolves.
 SCALE_FLOOR = 0.01
-FEATURE_SCALES = (0.0754, 0.0340, 0.0332, 0.1814, 0.1657, 0.2012, 0.0671, 0.0598, 0.3519, 0.0661, 0.1610, 0.1232,
-                  0.1230, 0.1856, 0.0862, 0.0826, 0.0649, 0.2554, 0.3039, 0.0355, 0.1523)
+FEATURE_SCALES = (0.0346, 0.0144, 0.0108, 0.2434, 0.1297, 0.2928, 0.1024, 0.1016, 0.4108, 0.0713, 0.2320, 0.1868,
+                  0.2284, 0.1477, 0.0473, 0.0332, 0.0510, 0.2441, 0.2701, 0.0501, 0.1299)
 COLOUR_SCALE = 0.02
 COLOUR_WEIGHT = -1.0  # logit per unit of the mean colour z (not fitted: no coloured training heaps)
 Z_CAP = 8.0  # beyond this a feature says "different" no louder
@@ -81,25 +81,26 @@ PATCH_TOLERANCE = 0.3
 # intercept; class-balanced, L2 1.0. Fitted by `scripts/bench_group.py --fit 10 ... 29 40 ... 59
 # --fit-corpus FAMILY ...` on heaps of synthetic mixture seeds 10-29 and 40-59 (this project's
 # generator, one scan resolution) together with corpus heaps (relicgpu.synth.corpus, 4 objects of
-# one family, seeds 0-19) of ten of its twelve families; smooth-noisy and vessel-coarse were kept
-# out of every fit and choice. Synth mixtures alone had given a model at ARI 0.45 on held-out
-# corpus kinds (docs/benchmarks.md, "Grouping heaps of other fractures").
+# one family, seeds 0-19) of ten of its twelve families, the fracture read as crease regions
+# (describe._grouping_params); smooth-noisy and vessel-coarse were kept out of every fit and
+# choice. Synth mixtures alone, read by roughness, had given a model at ARI 0.45 on corpus heaps
+# (docs/benchmarks.md, "Grouping heaps of other fractures").
 # Depends on relicgpu.pair.segment (which faces are fracture): refit when it changes.
-PAIR_WEIGHTS = (-0.261, -1.104, -0.695, -0.232, -0.502, 0.525, -0.102, -0.010, 0.062, -0.012, 0.117, -0.044, -0.331,
-                -0.208, -0.580, -0.478, -0.284, -0.022, -0.065, 0.412, 0.044, 0.788, 0.503, 0.119, -0.907, -0.162,
-                -0.876, 0.251, 0.898, 0.382, 0.208, 0.296, -0.869, -0.102, -0.224, -0.349, -0.045, -0.238, 0.032,
-                0.286, 0.191, 0.500, 0.601, 0.341, 0.159, -0.139, -0.911, 0.107, -1.254, -0.621, -0.444, 1.178,
-                -0.062, 0.946, 0.144, 0.244, 0.326, 0.002, 0.216, 0.432, -0.002, 0.202, 0.350, -0.142, 0.193, 0.005,
-                -0.088, 0.261, 0.003, -0.234, -0.200, -0.238, 0.320, 0.441, -0.263, 0.562, 0.075, 0.281, -0.569,
-                0.317, -0.142, 0.961, 7.371)
+PAIR_WEIGHTS = (-0.134, -0.957, 0.121, -0.238, -0.748, 0.111, -0.161, -0.264, -0.234, 0.071, 0.044, -0.206, -0.126,
+                0.057, -1.218, -0.686, 0.002, -0.103, -0.065, 0.368, -0.093, 0.006, 0.324, -0.856, -1.042, 0.181,
+                -1.039, 0.083, 0.980, -0.553, -0.015, 0.695, -0.508, -0.102, 0.236, 0.038, 0.195, -0.021, 0.095,
+                0.178, -0.043, 0.935, 0.387, 0.119, 0.201, -0.264, -0.945, 0.128, 0.224, -0.147, 1.017, 1.208,
+                -0.560, 1.291, 0.139, -0.137, 0.387, 0.212, 0.020, 0.571, 0.149, 0.020, 0.276, -0.324, 0.009, 0.151,
+                -0.102, 0.279, 0.275, 0.213, -0.278, -0.210, 0.353, 0.676, -0.107, -0.322, -0.292, -0.204, -0.475,
+                0.396, -0.397, 0.909, 9.165)
 # Clusters merge while the mean probability of one object between them is above 1 - LINK_CUT
 # (average linkage). Fragments left in groups of at most LEFTOVER_SIZE are then clustered among
 # themselves at LEFTOVER_CUT: pieces unlike the rest of their own object (a torso's limb and its
 # chest) find each other there rather than staying alone. LEFTOVER_* chosen with the synth-only
 # model by two-fold on mixture seeds 10-29 and 40-59 (settings 2-5 / 0.8-0.95 within 0.01 of one
 # another). LINK_CUT chosen with the model above, each corpus fracture kind left out of the fit in
-# turn and scored on its families' heaps (mean ARI over the ten families 0.544 / 0.562 / 0.559 /
-# 0.549 at 0.3 / 0.4 / 0.45 / 0.5; two-fold on the mixtures 0.920 / 0.902 / 0.904 / 0.889).
+# turn and scored on its families' heaps (mean ARI over the ten families 0.621 / 0.655 / 0.650 at
+# 0.3 / 0.4 / 0.5; two-fold on the mixtures 0.894 / 0.897 / 0.901).
 LINK_CUT = 0.4
 LEFTOVER_SIZE = 3
 LEFTOVER_CUT = 0.9
