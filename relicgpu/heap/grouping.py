@@ -11,10 +11,10 @@ within groups. Two ways:
   overlap: a varied object's pieces overlap somewhere), plus whether the two
   have a fracture patch of one size and outline (the two sides of one cut do);
   a fixed logistic model over those, piecewise linear in each z (PAIR_WEIGHTS,
-  fitted once on synthetic heaps that are not the benchmark's, see
-  `fit_pair_model`) gives the odds that the two come from one object;
-  average-linkage agglomerative clustering on 1 - p, cut where the mean p
-  between two clusters falls below 0.7, so the number of groups is found, not
+  fitted once on synthetic mixtures and corpus heaps that are not the
+  benchmark's, see `fit_pair_model`) gives the odds that the two come from one
+  object; average-linkage agglomerative clustering on 1 - p, cut where the mean
+  p between two clusters falls below 1 - LINK_CUT, so the number of groups is found, not
   given (or given, or another cut); fragments left alone or in small groups are
   then clustered among themselves at a looser cut.
 - supervised, `relicgpu train-classifier LABELS.csv`: a small PointNet over
