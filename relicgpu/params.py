@@ -123,6 +123,10 @@ class Params:
     # at least min_skin (None: never). Clouds with normals: the crease-region fit whose skin
     # continues most, at least this much, is taken (`pipeline._by_skin`; None: never)
     min_skin: float | None = 0.2
+    # clouds: a flat cut whose rim and face the partner's hold by at least min_plane
+    # (`planar.fit_score`), with no fit at another turn close (`pipeline._match_planes`), is
+    # taken before the crease regions are tried (None: never)
+    min_plane: float | None = 0.3
     outline_radius: float = 0.05
     outline_spread: float = 0.12
     # assembly: a verified match whose sharp creases meet the partner's (`verify.rim_agreement` of

@@ -7,7 +7,7 @@ the normals around each point (`pointcloud.fracture_likelihood`), and the rest o
 
 A clean break (a smooth or flat cut, as ceramics and Voronoi cell fracture make) is not rough,
 so roughness does not find it; but it is bounded by a crease. Where the roughness picks find no
-fit, each smooth region between creases (`crease_regions`) is tried as the fracture in turn, and
+fit, a flat cut is tried (`planar`, `plane_samples`), then each smooth region between creases (`crease_regions`) is tried as the fracture in turn, and
 the fit whose two regions touch over the largest share is kept (`REGION_OVERLAP`, `REGION_FACING`).
 """
 from __future__ import annotations
@@ -18,6 +18,7 @@ from .icp import apply
 from ..io.fragment import is_cloud
 from ..params import Params
 from ..cloud.points import estimate_normals, even_subsample, fracture_likelihood, local_pca
+from .planar import CutPlane, cut_planes
 from .ppf import smoothed_normals
 from .verify import SurfaceSample, Verification, verify
 
@@ -83,6 +84,13 @@ SKIN_RIVALS = 0.6
 # at 0.6 the rule gave 10 more right and 5 more wrong, at 0.3 10 more right and none wrong;
 # docs/benchmarks.md).
 SKIN_RIVALS_ESTIMATED = 0.3
+# Flat cuts (`planar`, `pipeline._match_planes`): the best polished fit of the candidate cut
+# planes is taken where no fit turned PLANE_RIVAL_DEG from it, or moving b's plane PLANE_RIVAL_SLIDE
+# (a share of the scale) from where it puts it, scores PLANE_RIVALS of it. Set on the corpus's
+# voronoi-clean clouds with normals, seeds 0-35 (docs/benchmarks.md).
+PLANE_RIVAL_DEG = 5.0
+PLANE_RIVAL_SLIDE = 0.05
+PLANE_RIVALS = 0.9
 
 
 def crease_regions(points: np.ndarray, normals: np.ndarray, given: bool) -> list[np.ndarray]:
@@ -122,6 +130,18 @@ def roughness(points: np.ndarray) -> float:
     return float(np.sqrt(np.median(np.maximum(local_pca(points, ROUGHNESS_FIT)[0][:, 0], 0.0))))
 
 
+def _region_sample(points: np.ndarray, normals: np.ndarray, region: np.ndarray, surf: np.ndarray, params: Params,
+                   scale: float) -> tuple[SurfaceSample, float] | None:
+    """A SurfaceSample taking the (N, 3) points' `region` (indices) as its fracture and `surf` as
+    its surface, and the region's `roughness` (None where its normals cancel)."""
+    idx = region[even_subsample(points[region], params.icp_points)]
+    if np.linalg.norm(normals[region].mean(0)) == 0:
+        return None
+    plane_normals = smoothed_normals(points[idx], normals[idx], params.ppf_normal_radius * scale)
+    return (SurfaceSample(points[idx], np.zeros(len(idx), np.int64), normals[idx], points[surf], normals[surf],
+                          plane_normals), roughness(points[idx]))
+
+
 def region_samples(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
                    scale: float) -> list[tuple[SurfaceSample, tuple[np.ndarray, np.ndarray], float]]:
     """Up to REGIONS samples of a cloud's (N, 3) points, each taking one `crease_regions` region
@@ -132,14 +152,25 @@ def region_samples(points: np.ndarray, given_normals: np.ndarray | None, params:
     surf = even_subsample(points, 2 * params.icp_points)
     out = []
     for region in crease_regions(points, normals, given_normals is not None)[:REGIONS]:
-        idx = region[even_subsample(points[region], params.icp_points)]
-        mean = normals[region].mean(0)
-        if np.linalg.norm(mean) == 0:
-            continue
-        plane_normals = smoothed_normals(points[idx], normals[idx], params.ppf_normal_radius * scale)
-        out.append((SurfaceSample(points[idx], np.zeros(len(idx), np.int64), normals[idx], points[surf],
-                                  normals[surf], plane_normals),
-                    (points[region].mean(0), mean / np.linalg.norm(mean)), roughness(points[idx])))
+        made = _region_sample(points, normals, region, surf, params, scale)
+        if made is not None:
+            mean = normals[region].mean(0)
+            out.append((made[0], (points[region].mean(0), mean / np.linalg.norm(mean)), made[1]))
+    return out
+
+
+def plane_samples(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
+                  scale: float) -> list[tuple[CutPlane, SurfaceSample, float]]:
+    """The planes that could be a flat cut of a cloud's (N, 3) points (`planar.cut_planes`), each
+    with a SurfaceSample taking its points as the fracture and the plane's points' `roughness`."""
+    points = np.asarray(points, np.float64)
+    normals = estimate_normals(points, given_normals)
+    surf = even_subsample(points, 2 * params.icp_points)
+    out = []
+    for plane in cut_planes(points, normals, point_spacing(points)):
+        made = _region_sample(points, normals, plane.indices, surf, params, scale)
+        if made is not None:
+            out.append((plane, *made))
     return out
 
 

@@ -16,10 +16,12 @@ from .icp import (apply, batched_icp, facing_poses, invert, ransac_poses, refine
 from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params
-from .cloudmatch import (AMBIGUOUS_SHARE, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS, SKIN_FITS,
+from .cloudmatch import (AMBIGUOUS_SHARE, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS,
+                         point_spacing, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS, SKIN_FITS,
                          SKIN_RIVAL_DEG, SKIN_RIVALS, SKIN_RIVALS_ESTIMATED, WIDE_SPREADS, cloud_params, cloud_sample,
                          cloud_skin, verify_clouds)
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
+from .planar import apart, polished_fits
 from .ppf import vote_poses
 from . import seam
 from .verify import index_cache, rim_agreement, verify
@@ -220,6 +222,9 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     touch over the largest share, unless a fit at another pose touches nearly as widely: a
     symmetric break cannot tell them apart, and a guess is worse than no answer (result: kept
     where none wins)."""
+    planar = _match_planes(pa, pb, params, be, scale, timings)
+    if planar is not None:
+        return planar
     # a flat break fits its partner at one turn only, which its outline alone decides
     turns = params.with_(patch_turns=REGION_TURNS)
     contact = params.contact_distance * scale
@@ -249,6 +254,39 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     if rivals and rivals[0] >= AMBIGUOUS_SHARE * overlap:
         return replace(fit, accepted=False, score=0.0, reason="ambiguous: crease regions fit at two poses alike "
                        f"(overlap {overlap:.2f} and {rivals[0]:.2f})")
+    return fit
+
+
+def _match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict) -> PairMatch | None:
+    """Two clouds matched on a flat cut (`planar`): the best of `planar.polished_fits`, where it scores at
+    least `Params.min_plane`, no fit turned more than PLANE_RIVAL_DEG from it or shifted more
+    than PLANE_RIVAL_SLIDE scores PLANE_RIVALS of it, and it verifies as a region fit. A best fit
+    that verifies but has such a rival is a symmetric cut: refused as ambiguous. None where no fit
+    decides (the crease regions are tried)."""
+    if params.min_plane is None or not (pa.planes and pb.planes):
+        return None
+    t0 = time.perf_counter()
+    spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
+    fits = polished_fits(pa.planes, pb.planes, spacing, params.contact_distance * scale, scale, index_cache(be))
+    timings = {**timings, "planes": time.perf_counter() - t0}
+    if not fits or fits[0][0] < params.min_plane:
+        return None
+    score, transform, (ia, ib) = fits[0]
+    centre = pb.planes[ib][0].frame[:3, 3]
+    rival = max([s for s, t, _ in fits[1:] if apart(t, transform, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE * scale, centre)],
+                default=0.0)
+    (_, sa, rough_a), (_, sb, rough_b) = pa.planes[ia], pb.planes[ib]
+    contact = params.contact_distance * scale
+    ver = verify_clouds(sa, sb, transform, be, contact, REGION_RESIDUAL * np.hypot(rough_a, rough_b), REGION_OVERLAP,
+                        params.penetration_depth * scale, index_cache(be), min_facing=REGION_FACING)
+    if not ver.accepted:
+        return None
+    fit = PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap, ver.penetration,
+                    np.zeros((0, 2), np.int64), -1, -1, f"accepted (a flat cut: its rim and face held {score:.2f} by "
+                    f"the partner's, {rival:.2f} at another pose)", timings)
+    if rival >= PLANE_RIVALS * score:
+        return replace(fit, accepted=False, score=0.0, reason=f"ambiguous: a flat cut held {score:.2f} by the "
+                       f"partner's and {rival:.2f} at another pose")
     return fit
 
 

@@ -12,7 +12,7 @@ from . import contour as contour_mod, features as features_mod, fusion as fusion
 from ..backends import resolve
 from ..io.fragment import Fragment
 from ..params import Params
-from .cloudmatch import STRICT_SPREADS, cloud_sample, region_samples
+from .cloudmatch import STRICT_SPREADS, cloud_sample, plane_samples, region_samples
 from ..cloud.points import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals
 from .segment import segment
@@ -41,6 +41,7 @@ class Prepared:
     strict_sample: SurfaceSample | None = None  # clouds: the fracture picked strictly (cloudmatch.STRICT_SPREADS)
     regions: list = field(default_factory=list)  # clouds: (sample, patch) of each crease-bounded region
     second: "Prepared | None" = None  # meshes: prepared again with Params.second_segmentation
+    planes: list = field(default_factory=list)  # clouds: (CutPlane, sample, roughness) of each candidate flat cut
 
     @property
     def fracture_faces(self) -> np.ndarray:
@@ -201,9 +202,10 @@ def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
     strict = cloud_sample(fragment.vertices, given, params, scale, STRICT_SPREADS)
     regions = [(s, Patch(0, centre, normal, 1.0), rough) for s, (centre, normal), rough in
                region_samples(fragment.vertices, given, params, scale)]
+    planes = plane_samples(fragment.vertices, given, params, scale)
     no_faces = np.zeros(0, np.int64)
     return Prepared(fragment, scale, no_faces, np.zeros(0, bool), [], sample, [],
-                    {"cloud": time.perf_counter() - t0}, strict, regions)
+                    {"cloud": time.perf_counter() - t0}, strict, regions, planes=planes)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,263 @@
+"""Flat breaks matched by their rims: a plane that bounds each piece, laid on the partner's.
+
+A flat cut (Voronoi cell fracture, a saw cut, a clean cleavage) holds nothing in its own plane:
+laid face to face, the two cut faces fix the plane and leave its turn and slide to the outline,
+which for a rounded solid is near an ellipse and fits at several turns (`cloudmatch`'s region
+fits settle 2-13 degrees off and tie at half a turn). The skin beside the cut does not tie: at
+the right pose it runs on across the seam with the same normal, point for point.
+
+So each piece's candidate cut planes are found directly (`cut_planes`: many points coplanar with
+their normals along the plane's, every other point of the piece behind it). The skin beside each
+plane is carried along its own slope onto the plane (`rim`): the rim curve, each point with the
+skin's normal there. For two planes put face to face the in-plane turn and slide are searched
+(every RIM_TURN_STEP degrees, each refined by a 2-D ICP on the rims whose normals agree), and a
+fit is scored by the share of rim points of either piece that land on the other's rim with the
+same skin normal, times the share of the cut faces that overlap (`plane_fits`, `fit_score`).
+The rims leave a near-elliptic cut a few degrees loose; the best distinct fits are polished on
+the skin across the seam and scored again (`polished_fits`). `pipeline._match_planes` takes the
+best where no other pose holds nearly as well, and calls the cut ambiguous otherwise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import seam
+from .icp import apply, invert, rotation_angle_deg
+
+# A cut plane: at least MIN_PLANE_SHARE of a piece's points within PLANE_SPACINGS point spacings
+# of it with normals within PLANE_DEG of its normal, and at most BEHIND_SHARE of the piece's
+# points more than BEHIND_SPACINGS spacings in front of it (a cut leaves the piece on one side).
+MIN_PLANE_SHARE = 0.03
+PLANE_SPACINGS = 1.0
+PLANE_DEG = 12.0
+BEHIND_SHARE = 0.01
+BEHIND_SPACINGS = 3.0
+MAX_PLANES = 4
+PLANE_SEEDS = 400
+# The rim: skin points within RIM_BAND spacings behind the plane, whose normal is not within
+# RIM_FLAT (cosine) of the plane's (skin parallel to the cut never reaches it), carried along
+# their own slope onto the plane (at most RIM_BAND spacings).
+RIM_BAND = 4.0
+RIM_FLAT = 0.9
+# A plane whose skin meets it square all round (median |cosine| of the skin's normals with the
+# plane's under MIN_TILT) is a prism's end: its side continues across any plane square to it, so
+# such a face stacks on a copy of itself as well as a cut does (a bookshelf's outer boards:
+# medians 0.0; the cut planes of the corpus's voronoi-clean clouds 0.04-0.72).
+MIN_TILT = 0.03
+# Search and score: a start every RIM_TURN_STEP degrees, ICP_ROUNDS rounds of 2-D ICP pairing
+# rim points whose normals agree within RIM_AGREE (cosine), gated from ICP_GATE spacings down
+# to RIM_HIT; a rim point is held where the other's lies within RIM_HIT spacings with normals
+# agreeing, a cut-face point where the other's lies within RIM_HIT spacings.
+RIM_TURN_STEP = 10.0
+ICP_ROUNDS = 8
+ICP_GATE = 6.0
+RIM_AGREE = 0.9
+RIM_HIT = 1.5
+MIN_RIM_POINTS = 12
+# The POLISH best fits that differ by DISTINCT_DEG of turn or DISTINCT_SLIDE of shift (shares of
+# the scale) are polished on the skin across the seam (`seam.seam_polish`: a flat face holds
+# nothing in its own plane, the skin beside it does) and scored again.
+POLISH = 6
+DISTINCT_DEG = 3.0
+DISTINCT_SLIDE = 0.02
+
+
+@dataclass(frozen=True)
+class CutPlane:
+    frame: np.ndarray  # (4, 4): columns u, v, n (outward), origin; plane coordinates -> piece
+    face: np.ndarray  # (K, 2) the cut face's points in plane coordinates
+    rim: np.ndarray  # (R, 2) the rim in plane coordinates
+    rim_normals: np.ndarray  # (R, 3) the skin's unit normals there, in plane coordinates
+    indices: np.ndarray  # (K,) the cut face's points among the piece's
+
+    def _to_piece(self, xy: np.ndarray) -> np.ndarray:
+        return xy @ self.frame[:3, :2].T + self.frame[:3, 3]
+
+    @property
+    def rim_points(self) -> np.ndarray:
+        """(R, 3) the rim in the piece's frame."""
+        return self._to_piece(self.rim)
+
+    @property
+    def rim_normals_3d(self) -> np.ndarray:
+        """(R, 3) the skin's normals at the rim in the piece's frame."""
+        return self.rim_normals @ self.frame[:3, :3].T
+
+    @property
+    def face_points(self) -> np.ndarray:
+        """(K, 3) the cut face's points moved onto the plane, in the piece's frame."""
+        return self._to_piece(self.face)
+
+
+def _frame(normal: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    u = np.cross(normal, [1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.cross(normal, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    frame = np.eye(4)
+    frame[:3, 0], frame[:3, 1], frame[:3, 2], frame[:3, 3] = u, np.cross(normal, u), normal, origin
+    return frame
+
+
+def cut_planes(points: np.ndarray, normals: np.ndarray, spacing: float) -> list[CutPlane]:
+    """The planes that could be a flat cut of a piece: (N, 3) points, (N, 3) outward unit normals,
+    the cloud's point spacing. Largest first, at most MAX_PLANES; each point on one plane only."""
+    n = len(points)
+    tol, cos = PLANE_SPACINGS * spacing, np.cos(np.radians(PLANE_DEG))
+    free = np.ones(n, bool)
+    seeds = np.random.default_rng(0).permutation(n)[:PLANE_SEEDS]
+    planes = []
+    while len(planes) < MAX_PLANES:
+        seeds = seeds[free[seeds]]
+        if not len(seeds):
+            break
+        height = np.abs(np.einsum("snk,sk->sn", points[None] - points[seeds, None], normals[seeds]))
+        along = normals @ normals[seeds].T
+        on = (height < tol) & (along.T > cos) & free[None]
+        best = int(np.argmax(on.sum(1)))
+        members = np.flatnonzero(on[best])
+        if len(members) < MIN_PLANE_SHARE * n:
+            break
+        free[members] = False
+        centre = points[members].mean(0)
+        _, _, vt = np.linalg.svd(points[members] - centre, full_matrices=False)
+        normal = vt[2] * np.sign(vt[2] @ normals[members].mean(0))
+        front = (points - centre) @ normal
+        if np.mean(front > BEHIND_SPACINGS * spacing) > BEHIND_SHARE:
+            continue
+        members = np.flatnonzero((np.abs(front) < tol) & (normals @ normal > cos))
+        plane = _plane(points, normals, members, _frame(normal, points[members].mean(0)), spacing)
+        if plane is not None:
+            planes.append(plane)
+    return planes
+
+
+def _plane(points, normals, members, frame, spacing) -> CutPlane | None:
+    local = (points - frame[:3, 3]) @ frame[:3, :3]
+    local_normals = normals @ frame[:3, :3]
+    skin = np.ones(len(points), bool)
+    skin[members] = False
+    near = skin & (local[:, 2] < 0) & (local[:, 2] > -RIM_BAND * spacing) & (np.abs(local_normals[:, 2]) < RIM_FLAT)
+    p, m = local[near], local_normals[near]
+    # along the skin towards the plane: e_z less its part along the normal
+    slope = np.stack([-m[:, 2] * m[:, 0], -m[:, 2] * m[:, 1], 1.0 - m[:, 2] ** 2], 1)
+    step = np.minimum(-p[:, 2] / slope[:, 2], RIM_BAND * spacing)
+    rim = p[:, :2] + step[:, None] * slope[:, :2]
+    if len(rim) < MIN_RIM_POINTS or np.median(np.abs(m[:, 2])) < MIN_TILT:
+        return None
+    return CutPlane(frame, local[members, :2], rim, m, members)
+
+
+def _flipped(plane: CutPlane) -> CutPlane:
+    """The plane seen from the other side (v and n reversed): how a partner's face lies on it."""
+    frame = plane.frame.copy()
+    frame[:3, 1:3] *= -1.0
+    flip = np.array([1.0, -1.0])
+    return CutPlane(frame, plane.face * flip, plane.rim * flip, plane.rim_normals * np.array([1.0, -1.0, -1.0]),
+                    plane.indices)
+
+
+def _rotation(theta: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def _procrustes(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray]:
+    cs, ct = source.mean(0), target.mean(0)
+    s, t = source - cs, target - ct
+    theta = np.arctan2(np.sum(s[:, 0] * t[:, 1] - s[:, 1] * t[:, 0]), np.sum(s * t))
+    return theta, ct - _rotation(theta) @ cs
+
+
+def _trees(plane: CutPlane):
+    from scipy.spatial import cKDTree
+
+    return cKDTree(plane.rim_points), cKDTree(plane.face_points)
+
+
+def _shares(source: CutPlane, target: CutPlane, trees, transform: np.ndarray, hit: float) -> tuple[float, float]:
+    """Of source's rim points moved by the (4, 4) transform, the share within `hit` of target's rim
+    with the skin's normals agreeing; of its cut face, the share within `hit` of target's."""
+    rotation, shift = transform[:3, :3], transform[:3, 3]
+    d, k = trees[0].query(source.rim_points @ rotation.T + shift, distance_upper_bound=hit)
+    held = np.isfinite(d)
+    held[held] = np.einsum("ij,ij->i", source.rim_normals_3d[held] @ rotation.T,
+                           target.rim_normals_3d[k[held]]) > RIM_AGREE
+    face = np.isfinite(trees[1].query(source.face_points @ rotation.T + shift, distance_upper_bound=hit)[0])
+    return float(held.mean()), float(face.mean())
+
+
+def fit_score(a: CutPlane, b: CutPlane, transform: np.ndarray, spacing: float, trees=None) -> float:
+    """How well piece b's cut plane, moved by the (4, 4) transform carrying b onto a, lies on a's:
+    the smaller share of either rim held by the other's (within RIM_HIT spacings, the skin's
+    normals agreeing), times the smaller share of either cut face over the other's."""
+    ta, tb = trees if trees is not None else (_trees(a), _trees(b))
+    hit = RIM_HIT * spacing
+    rim_b, face_b = _shares(b, a, ta, transform, hit)
+    rim_a, face_a = _shares(a, b, tb, np.linalg.inv(transform), hit)
+    return min(rim_a, rim_b) * min(face_a, face_b)
+
+
+def plane_fits(a: CutPlane, b: CutPlane, spacing: float) -> list[tuple[float, np.ndarray]]:
+    """Fits of piece b's cut plane face to face on piece a's, one per start turn (every
+    RIM_TURN_STEP degrees, refined by a 2-D ICP on the rims): (`fit_score`, (4, 4) transform
+    carrying b onto a), best first."""
+    from scipy.spatial import cKDTree
+
+    flipped = _flipped(b)
+    rim_tree = cKDTree(a.rim)
+    trees = (_trees(a), _trees(b))
+    hit = RIM_HIT * spacing
+    fits = []
+    for start in np.radians(np.arange(0.0, 360.0, RIM_TURN_STEP)):
+        rot = _rotation(start)
+        shift = a.face.mean(0) - rot @ flipped.face.mean(0)
+        for gate in np.geomspace(ICP_GATE * spacing, hit, ICP_ROUNDS):
+            moved = flipped.rim @ rot.T + shift
+            normals = np.column_stack([flipped.rim_normals[:, :2] @ rot.T, flipped.rim_normals[:, 2]])
+            d, k = rim_tree.query(moved, distance_upper_bound=gate)
+            ok = np.isfinite(d)
+            ok[ok] = np.einsum("ij,ij->i", normals[ok], a.rim_normals[k[ok]]) > RIM_AGREE
+            if ok.sum() < MIN_RIM_POINTS:
+                break
+            theta, shift = _procrustes(flipped.rim[ok], a.rim[k[ok]])
+            rot = _rotation(theta)
+        local = np.eye(4)
+        local[:2, :2], local[:2, 3] = rot, shift
+        transform = a.frame @ local @ np.linalg.inv(flipped.frame)
+        fits.append((fit_score(a, b, transform, spacing, trees), transform))
+    fits.sort(key=lambda f: -f[0])
+    return fits
+
+
+def apart(p: np.ndarray, q: np.ndarray, degrees: float, slide: float, centre: np.ndarray) -> bool:
+    """Whether two (4, 4) poses differ by more than `degrees` of turn, or move the (3,) `centre`
+    to places more than `slide` apart."""
+    return (rotation_angle_deg(p[:3, :3] @ q[:3, :3].T) > degrees
+            or np.linalg.norm((p[:3, :3] - q[:3, :3]) @ centre + p[:3, 3] - q[:3, 3]) > slide)
+
+
+def polished_fits(planes_a: list, planes_b: list, spacing: float, contact: float, scale: float, index_of) -> list:
+    """Fits of every candidate cut plane of piece b on every one of a (`plane_fits`; planes_a,
+    planes_b: (CutPlane, SurfaceSample of its points, roughness) each), the POLISH best that
+    differ by DISTINCT_DEG of turn or DISTINCT_SLIDE of shift (shares of `scale`) polished on the
+    skin across the seam (`seam.seam_polish`, `contact` absolute) and scored again:
+    [(score, (4, 4) transform carrying b onto a, (ia, ib))], best first."""
+    fits = [(score, transform, (ia, ib)) for ia, (plane_a, *_) in enumerate(planes_a)
+            for ib, (plane_b, *_) in enumerate(planes_b) for score, transform in plane_fits(plane_a, plane_b, spacing)]
+    fits.sort(key=lambda f: -f[0])
+    taken, polished = [], []
+    for _, transform, (ia, ib) in fits:
+        if len(taken) == POLISH:
+            break
+        (plane_a, sa, _), (plane_b, sb, _) = planes_a[ia], planes_b[ib]
+        if not all(apart(transform, t, DISTINCT_DEG, DISTINCT_SLIDE * scale, plane_b.frame[:3, 3]) for t in taken):
+            continue
+        taken.append(transform)
+        free = [seam.free_surface(sa.surface, sa.normals, apply(transform, sb.surface), contact),
+                seam.free_surface(sb.surface, sb.normals, apply(invert(transform), sa.surface), contact)]
+        transform, _ = seam.seam_polish(sa.fracture, sa.fracture_normals, sb.fracture, free[0], free[1], transform,
+                                        contact, scale, index_of(sa.fracture))
+        polished.append((fit_score(plane_a, plane_b, transform, spacing), transform, (ia, ib)))
+    polished.sort(key=lambda f: -f[0])
+    return polished

@@ -1,0 +1,89 @@
+"""Flat cuts found and laid on each other (`relicgpu.pair.planar`), on clouds made here."""
+import numpy as np
+import trimesh
+
+from relicgpu.backends import resolve
+from relicgpu.pair import planar
+from relicgpu.pair.cloudmatch import plane_samples
+from relicgpu.pair.verify import index_cache
+from relicgpu.params import Params
+from relicgpu.pair.cloudmatch import point_spacing
+from relicgpu.pair.icp import rotation_angle_deg
+
+NORMAL = np.array([0.3, -0.5, 0.81])
+NORMAL = NORMAL / np.linalg.norm(NORMAL)
+OFFSET = 0.12  # the cut misses the centre, so the skin's tilt along the rim has no symmetry
+
+
+def _cloud(mesh, seed, points=2500):
+    p, face = trimesh.sample.sample_surface(mesh, points, seed=seed)
+    return p, mesh.face_normals[face]
+
+
+def _halves():
+    """An ellipsoid (axes 1, 0.7, 0.5) cut by an oblique plane (manifold3d): the (N, 3) points and
+    outward normals of the piece below it and of the piece above it."""
+    import manifold3d
+
+    solid = manifold3d.Manifold.sphere(1.0, 160).scale([1.0, 0.7, 0.5])
+
+    def mesh(part):
+        m = part.to_mesh()
+        return trimesh.Trimesh(np.asarray(m.vert_properties)[:, :3], np.asarray(m.tri_verts))
+
+    below = mesh(solid.trim_by_plane(list(-NORMAL), -OFFSET))
+    above = mesh(solid.trim_by_plane(list(NORMAL), OFFSET))
+    return _cloud(below, 1), _cloud(above, 2)
+
+
+def _turn(axis, degrees):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    t = np.radians(degrees)
+    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
+
+
+def test_the_cut_is_found_with_its_rim_and_a_prism_end_is_not():
+    (points, normals), _ = _halves()
+    spacing = point_spacing(points)
+    planes = planar.cut_planes(points, normals, spacing)
+    assert planes, "no plane found"
+    cut = planes[0]
+    assert cut.frame[:3, 2] @ NORMAL > 0.999  # outward: away from the piece, towards its partner
+    assert abs(cut.frame[:3, 3] @ NORMAL - OFFSET) < spacing
+    # the rim lies on the ellipsoid: x^2 + (y / 0.7)^2 + (z / 0.5)^2 = 1, within a few spacings
+    rim = cut.rim_points
+    level = np.sqrt(rim[:, 0] ** 2 + (rim[:, 1] / 0.7) ** 2 + (rim[:, 2] / 0.5) ** 2)
+    assert np.median(np.abs(level - 1.0)) < 2 * spacing, np.median(np.abs(level - 1.0))
+    # every face of a box meets its neighbours square: each is a prism's end, none a cut
+    box_points, box_normals = _cloud(trimesh.creation.box([1.0, 0.6, 0.4]), 3)
+    assert planar.cut_planes(box_points, box_normals, point_spacing(box_points)) == []
+
+
+def test_a_turned_and_moved_partner_is_laid_back_on_its_cut():
+    (pa, na), (pb, nb) = _halves()
+    turn = _turn([0.2, 1.0, -0.4], 130.0)
+    shift = np.array([2.0, -1.0, 0.5])
+    moved, moved_normals = pb @ turn.T + shift, nb @ turn.T
+    truth = np.eye(4)
+    truth[:3, :3], truth[:3, 3] = turn.T, -turn.T @ shift  # carries the moved piece back
+    spacing = max(point_spacing(pa), point_spacing(moved))
+    a = planar.cut_planes(pa, na, spacing)[0]
+    b = planar.cut_planes(moved, moved_normals, spacing)[0]
+    # the rims alone leave a near-elliptic cut a few degrees loose in its turn ...
+    score, best = planar.plane_fits(a, b, spacing)[0]
+    assert rotation_angle_deg(best[:3, :3] @ truth[:3, :3].T) < 8.0
+    # ... the skin across the seam holds it
+    params, scale = Params(), 2.0
+    planes = [plane_samples(p, n, params, scale)[:1] for p, n in ((pa, na), (moved, moved_normals))]
+    score, best, _ = planar.polished_fits(*planes, spacing, params.contact_distance * scale, scale,
+                                          index_cache(resolve("numpy")))[0]
+    assert rotation_angle_deg(best[:3, :3] @ truth[:3, :3].T) < 1.0
+    gap = np.linalg.norm(moved @ best[:3, :3].T + best[:3, 3] - pb, axis=1)
+    assert np.sqrt(np.mean(gap ** 2)) < spacing
+    assert score > 0.5, score
+    # half a turn about the cut's normal the rims and faces hold far less
+    flip = np.eye(4)
+    flip[:3, :3] = _turn(NORMAL, 180.0)
+    flip[:3, 3] = OFFSET * NORMAL - flip[:3, :3] @ (OFFSET * NORMAL)
+    assert planar.fit_score(a, b, flip @ truth, spacing) < 0.5 * planar.fit_score(a, b, truth, spacing)
