@@ -8,8 +8,8 @@ the right pose it runs on across the seam with the same normal, point for point.
 
 So each piece's candidate cut planes are found directly (`cut_planes`: many points coplanar with
 their normals along the plane's, every other point of the piece behind it). The skin beside each
-plane is carried along its own slope onto the plane (`rim`): the rim curve, each point with the
-skin's normal there. For two planes put face to face the in-plane turn and slide are searched
+plane is carried along its own slope onto the plane (`CutPlane.rim`): the rim curve, each point
+with the skin's normal there. For two planes put face to face the in-plane turn and slide are searched
 (every RIM_TURN_STEP degrees, each refined by a 2-D ICP on the rims whose normals agree), and a
 fit is scored by the share of rim points of either piece that land on the other's rim with the
 same skin normal, times the share of the cut faces that overlap (`plane_fits`, `fit_score`).
