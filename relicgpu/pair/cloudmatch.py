@@ -7,8 +7,9 @@ the normals around each point (`pointcloud.fracture_likelihood`), and the rest o
 
 A clean break (a smooth or flat cut, as ceramics and Voronoi cell fracture make) is not rough,
 so roughness does not find it; but it is bounded by a crease. Where the roughness picks find no
-fit, a flat cut is tried (`planar`, `plane_samples`), then each smooth region between creases (`crease_regions`) is tried as the fracture in turn, and
-the fit whose two regions touch over the largest share is kept (`REGION_OVERLAP`, `REGION_FACING`).
+fit, a flat cut is tried (`planar`, `plane_samples`), then each smooth region between creases
+(`crease_regions`) as the fracture in turn, and the fit whose two regions touch over the largest
+share is kept (`REGION_OVERLAP`, `REGION_FACING`).
 """
 from __future__ import annotations
 

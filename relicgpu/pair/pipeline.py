@@ -258,16 +258,17 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
 
 
 def _match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict) -> PairMatch | None:
-    """Two clouds matched on a flat cut (`planar`): the best of `planar.polished_fits`, where it scores at
-    least `Params.min_plane`, no fit turned more than PLANE_RIVAL_DEG from it or shifted more
-    than PLANE_RIVAL_SLIDE scores PLANE_RIVALS of it, and it verifies as a region fit. A best fit
-    that verifies but has such a rival is a symmetric cut: refused as ambiguous. None where no fit
-    decides (the crease regions are tried)."""
+    """Two clouds matched on a flat cut (`planar`): the best of `planar.polished_fits`, where it
+    scores at least `Params.min_plane`, no fit turned more than PLANE_RIVAL_DEG from it or shifted
+    more than PLANE_RIVAL_SLIDE scores PLANE_RIVALS of it, and it verifies as a region fit. A best
+    fit that verifies but has such a rival is a symmetric cut: refused as ambiguous. None where no
+    fit decides (the crease regions are tried)."""
     if params.min_plane is None or not (pa.planes and pb.planes):
         return None
     t0 = time.perf_counter()
     spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
-    fits = polished_fits(pa.planes, pb.planes, spacing, params.contact_distance * scale, scale, index_cache(be))
+    contact = params.contact_distance * scale
+    fits = polished_fits(pa.planes, pb.planes, spacing, contact, scale, index_cache(be))
     timings = {**timings, "planes": time.perf_counter() - t0}
     if not fits or fits[0][0] < params.min_plane:
         return None
@@ -276,7 +277,6 @@ def _match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
     rival = max([s for s, t, _ in fits[1:] if apart(t, transform, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE * scale, centre)],
                 default=0.0)
     (_, sa, rough_a), (_, sb, rough_b) = pa.planes[ia], pb.planes[ib]
-    contact = params.contact_distance * scale
     ver = verify_clouds(sa, sb, transform, be, contact, REGION_RESIDUAL * np.hypot(rough_a, rough_b), REGION_OVERLAP,
                         params.penetration_depth * scale, index_cache(be), min_facing=REGION_FACING)
     if not ver.accepted:

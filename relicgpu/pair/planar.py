@@ -92,10 +92,9 @@ class CutPlane:
 
 
 def _frame(normal: np.ndarray, origin: np.ndarray) -> np.ndarray:
-    u = np.cross(normal, [1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.cross(normal, [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
     frame = np.eye(4)
-    frame[:3, 0], frame[:3, 1], frame[:3, 2], frame[:3, 3] = u, np.cross(normal, u), normal, origin
+    frame[:3, 0], frame[:3, 1] = seam._frame(normal)
+    frame[:3, 2], frame[:3, 3] = normal, origin
     return frame
 
 
