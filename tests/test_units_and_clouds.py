@@ -269,6 +269,34 @@ def test_a_clean_smooth_break_is_matched_on_its_crease_regions():
     _assert_right(result, frags[1], truth)
 
 
+@pytest.mark.parametrize("seed, pair, with_normals", [(2, 9, True), (3, 13, False)])
+def test_a_smooth_cut_whose_regions_hold_skin_is_matched_on_its_skin(seed, pair, with_normals):
+    """A smooth curved cut whose crease regions run on into the skin past a shallow rim: its right
+    fit touches over a fifth of the regions and faces 0.80 (seed 2; under the region bars, so it
+    was missed), and wins on the skin across its seam among the looser fits of curved regions."""
+    frags, truth = _corpus_cloud_pair("smooth-clean", seed, pair, with_normals)
+    result = match_pair(*frags, backend="numpy")
+    assert "touching over" in result.reason and "its skin continues" in result.reason, result.reason
+    _assert_right(result, frags[1], truth)
+
+
+def test_flat_regions_are_not_matched_on_their_skin_alone():
+    """Two flat crease regions hold a fit in neither its slide nor its turn in the plane: the
+    looser region fits of a Voronoi cut (seed 44, whose flat-cut fit is refused) are not taken on
+    their skin (without `cloudmatch.LOOSE_CURVED` it was accepted 7-10 degrees off)."""
+    from relicgpu.pair.cloudmatch import curvedness
+
+    frags, truth = _corpus_cloud_pair("voronoi-clean", 44, 178)
+    result = match_pair(*frags, backend="numpy")
+    assert "touching over" not in result.reason, result.reason
+    if result.accepted:
+        _assert_right(result, frags[1], truth)
+    rng = np.random.default_rng(0)
+    disc = np.c_[rng.uniform(-1, 1, (500, 2)), 0.001 * rng.normal(size=500)]
+    cap = np.c_[disc[:, :2], 0.3 * (disc[:, :2] ** 2).sum(1)]
+    assert curvedness(disc) < 0.005 < 0.05 < curvedness(cap)
+
+
 @pytest.mark.parametrize("seed", [16, 52])
 def test_a_piece_with_no_rough_point_is_matched_on_its_wide_pick(seed):
     """A piece's first fracture pick is empty (no point over its median roughness): the wide

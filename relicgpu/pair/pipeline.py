@@ -16,10 +16,10 @@ from .icp import (apply, batched_icp, facing_poses, invert, ransac_poses, refine
 from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params
-from .cloudmatch import (AMBIGUOUS_SHARE, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS,
+from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS,
                          point_spacing, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS, SKIN_FITS,
                          SKIN_RIVAL_DEG, SKIN_RIVALS, SKIN_RIVALS_ESTIMATED, WIDE_SPREADS, cloud_params, cloud_sample,
-                         cloud_skin, verify_clouds)
+                         cloud_skin, curvedness, verify_clouds)
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .planar import apart, polished_fits
 from .ppf import vote_poses
@@ -221,32 +221,44 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     where no fit at another turn continues nearly as well (`_by_skin`); else the one whose regions
     touch over the largest share, unless a fit at another pose touches nearly as widely: a
     symmetric break cannot tell them apart, and a guess is worse than no answer (result: kept
-    where none wins)."""
+    where none wins). Where no fit passing the region bars wins on its skin, fits touching and
+    facing less (`cloudmatch.LOOSE_OVERLAP`, `LOOSE_FACING`: a smooth cut's region holds skin
+    beyond a shallow rim) may, on their skin alone, where both regions curve (`LOOSE_CURVED`)."""
     planar = _match_planes(pa, pb, params, be, scale, timings)
     if planar is not None:
         return planar
     # a flat break fits its partner at one turn only, which its outline alone decides
     turns = params.with_(patch_turns=REGION_TURNS)
     contact = params.contact_distance * scale
-    accepted = []  # (overlap, transform, verification, region sample a, region sample b, residual bound, index_of)
-    for sa, patch_a, rough_a in pa.regions:
-        for sb, patch_b, rough_b in pb.regions:
+    accepted, loose = [], []  # (overlap, transform, verification, region sample a, region sample b, residual bound,
+    # index_of) of fits passing the region bars, and the looser ones
+    curved = [[curvedness(s.fracture) >= LOOSE_CURVED for s, *_ in p.regions] for p in (pa, pb)]
+    for (sa, patch_a, rough_a), curved_a in zip(pa.regions, curved[0]):
+        for (sb, patch_b, rough_b), curved_b in zip(pb.regions, curved[1]):
             fits, index_of = _candidate_fits(replace(pa, sample=sa, patches=[patch_a]),
                                              replace(pb, sample=sb, patches=[patch_b]), turns, be, None, scale,
                                              dict(timings))
             bound = REGION_RESIDUAL * np.hypot(rough_a, rough_b)
             for transform, *_ in fits:
-                ver = verify_clouds(sa, sb, transform, be, contact, bound, REGION_OVERLAP,
-                                    params.penetration_depth * scale, index_of, min_facing=REGION_FACING)
-                if ver.accepted:
-                    accepted.append((ver.overlap, transform, ver, sa, sb, bound, index_of))
-    if not accepted:
-        return result
-    accepted.sort(key=lambda x: -x[0])
+                ver = verify_clouds(sa, sb, transform, be, contact, bound, LOOSE_OVERLAP,
+                                    params.penetration_depth * scale, index_of, min_facing=LOOSE_FACING)
+                fit = (ver.overlap, transform, ver, sa, sb, bound, index_of)
+                if ver.accepted and ver.overlap >= REGION_OVERLAP and ver.facing >= REGION_FACING:
+                    accepted.append(fit)
+                    loose.append(fit)
+                elif ver.accepted and curved_a and curved_b:
+                    loose.append(fit)
     scanned = all(getattr(p.fragment, "normals", None) is not None for p in (pa, pb))
-    by_skin = _by_skin(accepted, params, be, scale, timings, SKIN_RIVALS if scanned else SKIN_RIVALS_ESTIMATED)
+    rivals_share = SKIN_RIVALS if scanned else SKIN_RIVALS_ESTIMATED
+    accepted.sort(key=lambda x: -x[0])
+    loose.sort(key=lambda x: -x[0])
+    by_skin = _by_skin(accepted, params, be, scale, timings, rivals_share) if accepted else None
+    if by_skin is None and len(loose) > len(accepted):
+        by_skin = _by_skin(loose, params, be, scale, timings, rivals_share, LOOSE_OVERLAP, LOOSE_FACING)
     if by_skin is not None:
         return by_skin
+    if not accepted:
+        return result
     overlap, transform, ver, *_ = accepted[0]
     rivals = [o for o, t, *_ in accepted[1:] if not same_pose(t, transform, contact)]
     fit = PairMatch(transform, True, overlap * (1.0 - ver.penetration), ver.rmse, overlap, ver.penetration,
@@ -290,12 +302,14 @@ def _match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
     return fit
 
 
-def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict, rivals_share: float) -> PairMatch | None:
+def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict, rivals_share: float,
+             min_overlap: float = REGION_OVERLAP, min_facing: float = REGION_FACING) -> PairMatch | None:
     """The region fit (of `_match_regions`' accepted list, widest touching first) whose skin
     continues the partner's best, polished on that skin (`seam.seam_polish`: a flat break leaves
     its slide and its turn in the plane to the outline alone), where it continues by at least
     `Params.min_skin`, every fit at another turn (over SKIN_RIVAL_DEG) continues less than
-    `rivals_share` times as much, and the polished fit verifies; None otherwise."""
+    `rivals_share` times as much, and the polished fit verifies (touching over `min_overlap`,
+    facing `min_facing`); None otherwise."""
     if params.min_skin is None:
         return None
     contact = params.contact_distance * scale
@@ -315,12 +329,13 @@ def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict, ri
                                        contact, scale, index_of(sa.fracture))
     after = seam.skin_continuation(sa, sb, transform, contact, scale)
     timings = {**timings, "seam": time.perf_counter() - t0}
-    ver = verify_clouds(sa, sb, transform, be, contact, bound, REGION_OVERLAP, params.penetration_depth * scale,
-                        index_of, min_facing=REGION_FACING)
+    ver = verify_clouds(sa, sb, transform, be, contact, bound, min_overlap, params.penetration_depth * scale,
+                        index_of, min_facing=min_facing)
     if not ver.accepted:
         return None
+    touching = f" touching over {ver.overlap:.2f} of them" if ver.overlap < REGION_OVERLAP else ""
     return PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap, ver.penetration,
-                     np.zeros((0, 2), np.int64), -1, -1, f"accepted (crease regions; its skin continues the "
+                     np.zeros((0, 2), np.int64), -1, -1, f"accepted (crease regions{touching}; its skin continues the "
                      f"partner's {skins[best]:.2f} across the seam, {after:.2f} once held by it, {held} points)",
                      timings)
 
