@@ -297,6 +297,20 @@ def test_flat_regions_are_not_matched_on_their_skin_alone():
     assert curvedness(disc) < 0.005 < 0.05 < curvedness(cap)
 
 
+@pytest.mark.parametrize("family, seed, pair", [("voronoi-clean", 47, 190), ("rough-clean", 19, 76)])
+def test_a_pick_fit_whose_skin_does_not_continue_is_refused(family, seed, pair):
+    """Clouds without normals whose roughness picks passed a face laid on a face, 154 and 73
+    degrees off (the skin beside the seam continued the partner's over 9 of 360 and 1 of 137
+    points): refused for it, then left unmatched (Voronoi seed 47) or matched right on the crease
+    regions (rough seed 19)."""
+    frags, truth = _corpus_cloud_pair(family, seed, pair, with_normals=False)
+    result = match_pair(*frags, backend="numpy")
+    if result.accepted:
+        _assert_right(result, frags[1], truth)
+    else:
+        assert result.reason.startswith("the skin beside its seam does not continue"), result.reason
+
+
 @pytest.mark.parametrize("seed", [16, 52])
 def test_a_piece_with_no_rough_point_is_matched_on_its_wide_pick(seed):
     """A piece's first fracture pick is empty (no point over its median roughness): the wide

@@ -98,6 +98,14 @@ LOOSE_FACING = 0.6
 # a few degrees off (voronoi cuts, 0.002-0.004; the smooth cuts' regions 0.04-0.16; flat cuts are
 # `planar`'s to match).
 LOOSE_CURVED = 0.02
+# A fit found on the roughness picks is refused where, of at least PICK_SKIN_NEAR free skin
+# points near the partner's, under MIN_PICK_SKIN continue its surface (`seam.skin_points`): such
+# a fit lays a face on a face with the rims apart. Set on the corpus's clean clouds without
+# normals (docs/benchmarks.md): wrong fits 1-73 degrees off 0.01-0.08 (7 of 8 under 0.05), right
+# fits 0.12-0.87; held out, the corpus with normals (right 0.28 and up) and relicgpu.synth's
+# clouds (right 0.11 and up).
+MIN_PICK_SKIN = 0.05
+PICK_SKIN_NEAR = 20
 # Flat cuts (`planar`, `pipeline._match_planes`): the best polished fit of the candidate cut
 # planes is taken where no fit turned PLANE_RIVAL_DEG from it, or moving b's plane PLANE_RIVAL_SLIDE
 # (a share of the scale) from where it puts it, scores PLANE_RIVALS of it. Set on the corpus's

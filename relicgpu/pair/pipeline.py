@@ -16,10 +16,10 @@ from .icp import (apply, batched_icp, facing_poses, invert, ransac_poses, refine
 from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params
-from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS,
-                         point_spacing, REGION_FACING, REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS, SKIN_FITS,
-                         SKIN_RIVAL_DEG, SKIN_RIVALS, SKIN_RIVALS_ESTIMATED, WIDE_SPREADS, cloud_params, cloud_sample,
-                         cloud_skin, curvedness, verify_clouds)
+from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP, MIN_PICK_SKIN, PICK_SKIN_NEAR,
+                         PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS, point_spacing, REGION_FACING, REGION_OVERLAP,
+                         REGION_RESIDUAL, REGION_TURNS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS, SKIN_RIVALS_ESTIMATED,
+                         WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness, verify_clouds)
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .planar import apart, polished_fits
 from .ppf import vote_poses
@@ -115,9 +115,11 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     pb = _as_prepared(b, params, be, scale)
     params = cloud_params(params, (pa.fragment, pb.fragment), scale)
     timings = {"prepare": time.perf_counter() - t_start}
-    rims = None if heads is not None or is_cloud(pa.fragment) or is_cloud(pb.fragment) else _rims(
-        pa, pb, params, be, scale)
+    clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
+    rims = None if heads is not None or clouds else _rims(pa, pb, params, be, scale)
     result = _match_prepared(pa, pb, params, be, heads, scale, timings)
+    if clouds and heads is None:
+        result = _skin_continues(pa, pb, params, scale, result)
     if heads is None and _second_params(params) is not None:
         first_rims = rims(result.transform) if result.accepted and rims is not None else None
         if not result.accepted or (first_rims is not None and first_rims <= 0):
@@ -137,11 +139,23 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
                 return replace(second, score=SECOND_READING_SCORE * second.score,
                                reason=f"{second.reason} ({params.second_segmentation} segmentation{why})")
     if not (result.accepted or heads is not None or pa.strict_sample is None or pb.strict_sample is None):
-        result = _match_strict(pa, pb, params, be, scale, timings, result)
+        result = _skin_continues(pa, pb, params, scale, _match_strict(pa, pb, params, be, scale, timings, result))
         if not result.accepted:
             result = _match_regions(pa, pb, params, be, scale, timings, result)
-    clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
     return _held_by_skin(pa, pb, params, be, scale, result) if clouds and result.accepted else result
+
+
+def _skin_continues(pa: Prepared, pb: Prepared, params: Params, scale: float, result: PairMatch) -> PairMatch:
+    """An accepted cloud fit of the roughness picks, refused where the skin beside its seam does
+    not continue the partner's (`cloudmatch.MIN_PICK_SKIN`): a face laid on a face with the rims
+    apart passes the picks' bars on a sparse cloud."""
+    if not result.accepted:
+        return result
+    continues, near = seam.skin_points(pa.sample, pb.sample, result.transform, params.contact_distance * scale, scale)
+    if near < PICK_SKIN_NEAR or continues >= MIN_PICK_SKIN * near:
+        return result
+    return replace(result, accepted=False, score=0.0, reason=f"the skin beside its seam does not continue the "
+                   f"partner's ({continues} of {near} points near it, under {MIN_PICK_SKIN:.2f})")
 
 
 def _held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, result: PairMatch) -> PairMatch:

@@ -245,6 +245,13 @@ def skin_continuation(a, b, transform: np.ndarray, contact: float, scale: float)
     points within REACH, normals within AGREE). No segmentation is asked for: at the right fit of
     a fresh break the skins on both sides meet smoothly; a face laid on a face with the rims
     apart puts one piece's side across the other's face. 0.0 where no free point is near."""
+    continues, near = skin_points(a, b, transform, contact, scale)
+    return continues / near if near else 0.0
+
+
+def skin_points(a, b, transform: np.ndarray, contact: float, scale: float) -> tuple[int, int]:
+    """`skin_continuation`'s counts: the free points that continue the partner's surface, and
+    those near it."""
     moved, moved_normals = apply(transform, b.surface), b.normals @ transform[:3, :3].T
     free_a = free_surface(a.surface, a.normals, moved, contact)
     free_b = free_surface(moved, moved_normals, a.surface, contact)
@@ -252,5 +259,5 @@ def skin_continuation(a, b, transform: np.ndarray, contact: float, scale: float)
     for skin, others in ((free_a, free_b), (free_b, free_a)):
         count, found = _extensions(*skin, *others, NEAR * scale, REACH * scale)
         near += count
-        continues += sum(off < CONTINUES * scale for *_, off in found)
-    return continues / near if near else 0.0
+        continues += int(sum(off < CONTINUES * scale for *_, off in found))
+    return continues, near
