@@ -89,8 +89,8 @@ SKIN_RIVALS_ESTIMATED = 0.3
 # touches over less of it than REGION_OVERLAP and faces less than REGION_FACING. Where no fit
 # passing those bars wins on its skin, fits touching over LOOSE_OVERLAP and facing LOOSE_FACING
 # may, by the same skin rule (never by their overlap). Set by replaying the recorded region fits
-# of the corpus's clean clouds, seeds 0-35 (docs/benchmarks.md): right 96 -> 99 with normals and
-# 56 -> 60 without; seeds 36-71 held out.
+# of the corpus's clean clouds, seeds 0-35 (docs/benchmarks.md); end to end there 96 -> 99 right
+# with normals and 56 -> 61 without, on seeds 36-71 94 -> 100 and 55 -> 59, none more wrong.
 LOOSE_OVERLAP = 0.1
 LOOSE_FACING = 0.6
 # ... and only between regions that curve (`curvedness` at least LOOSE_CURVED): two flat regions
@@ -101,7 +101,7 @@ LOOSE_CURVED = 0.02
 # A fit found on the roughness picks is refused where, of at least PICK_SKIN_NEAR free skin
 # points near the partner's, under MIN_PICK_SKIN continue its surface (`seam.skin_points`): such
 # a fit lays a face on a face with the rims apart. Set on the corpus's clean clouds without
-# normals (docs/benchmarks.md): wrong fits 1-73 degrees off 0.01-0.08 (7 of 8 under 0.05), right
+# normals (docs/benchmarks.md): wrong fits 37-172 degrees off 0.01-0.08 (7 of 8 under 0.05), right
 # fits 0.12-0.87; held out, the corpus with normals (right 0.28 and up) and relicgpu.synth's
 # clouds (right 0.11 and up).
 MIN_PICK_SKIN = 0.05
