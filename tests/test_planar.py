@@ -87,3 +87,27 @@ def test_a_turned_and_moved_partner_is_laid_back_on_its_cut():
     flip[:3, :3] = _turn(NORMAL, 180.0)
     flip[:3, 3] = OFFSET * NORMAL - flip[:3, :3] @ (OFFSET * NORMAL)
     assert planar.fit_score(a, b, flip @ truth, spacing) < 0.5 * planar.fit_score(a, b, truth, spacing)
+
+
+def test_rim_normals_estimated_from_the_points_are_fitted_on_the_skin_alone():
+    """Normals estimated from the points round a crease off (a plane fit across it takes in the
+    cut face); fitted again over the skin alone, the rim's normals are the skin's."""
+    from relicgpu.cloud.points import estimate_normals
+
+    (points, normals), _ = _halves()
+    estimated = estimate_normals(points)
+    spacing = point_spacing(points)
+    scanned = planar.cut_planes(points, normals, spacing)[0]
+    rounded = planar.cut_planes(points, estimated, spacing)[0]
+    refitted = planar.cut_planes(points, estimated, spacing, estimated=True)[0]
+
+    def error(plane):  # median angle between the rim normals and the true skin normals near each rim point
+        from scipy.spatial import cKDTree
+
+        skin = np.flatnonzero(normals @ NORMAL < 0.9)
+        _, near = cKDTree(points[skin]).query(plane.rim_points)
+        cos = np.einsum("ij,ij->i", plane.rim_normals_3d, normals[skin][near])
+        return float(np.median(np.degrees(np.arccos(np.clip(cos, -1, 1)))))
+
+    assert error(scanned) < 4.0
+    assert error(refitted) < 0.6 * error(rounded), (error(refitted), error(rounded))

@@ -347,6 +347,16 @@ def test_a_flat_cut_is_matched_on_its_rim():
     assert rot < 0.5, rot
 
 
+def test_a_flat_cut_without_normals_is_matched_on_its_rim():
+    """The same without scanned normals (voronoi seed 16): the normals estimated at the rim lean
+    towards the cut, and its crease regions fit at two poses alike (refused as ambiguous); with
+    the rim's normals fitted on the skin alone (`planar.RIM_NEIGHBOURS`) its flat cut is right."""
+    frags, truth = _corpus_cloud_pair("voronoi-clean", 16, 66, with_normals=False)
+    result = match_pair(*frags, backend="numpy")
+    assert result.reason.startswith("accepted (a flat cut"), result.reason
+    _assert_right(result, frags[1], truth)
+
+
 def test_a_flat_cut_that_fits_at_two_poses_is_refused():
     """A flat cut through a jar whose rim fits at turns 9 degrees apart alike (voronoi seed 8; the
     region path accepted it 5.9 degrees off): refused as ambiguous rather than guessed."""

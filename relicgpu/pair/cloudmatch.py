@@ -199,7 +199,7 @@ def plane_samples(points: np.ndarray, given_normals: np.ndarray | None, params: 
     normals = estimate_normals(points, given_normals)
     surf = even_subsample(points, 2 * params.icp_points)
     out = []
-    for plane in cut_planes(points, normals, point_spacing(points)):
+    for plane in cut_planes(points, normals, point_spacing(points), given_normals is None):
         made = _region_sample(points, normals, plane.indices, surf, params, scale)
         if made is not None:
             out.append((plane, *made))

@@ -41,6 +41,10 @@ PLANE_SEEDS = 400
 # their own slope onto the plane (at most RIM_BAND spacings).
 RIM_BAND = 4.0
 RIM_FLAT = 0.9
+# Normals estimated from the points round the crease off: a rim point's plane fit takes in the cut
+# face, and its normal leans towards the plane's. Where the normals are estimated, each rim
+# point's is fitted again over its RIM_NEIGHBOURS nearest skin points (off the plane) only.
+RIM_NEIGHBOURS = 10
 # A plane whose skin meets it square all round (median |cosine| of the skin's normals with the
 # plane's under MIN_TILT) is a prism's end: its side continues across any plane square to it, so
 # such a face stacks on a copy of itself as well as a cut does (a bookshelf's outer boards:
@@ -98,9 +102,10 @@ def _frame(normal: np.ndarray, origin: np.ndarray) -> np.ndarray:
     return frame
 
 
-def cut_planes(points: np.ndarray, normals: np.ndarray, spacing: float) -> list[CutPlane]:
-    """The planes that could be a flat cut of a piece: (N, 3) points, (N, 3) outward unit normals,
-    the cloud's point spacing. Largest first, at most MAX_PLANES; each point on one plane only."""
+def cut_planes(points: np.ndarray, normals: np.ndarray, spacing: float, estimated: bool = False) -> list[CutPlane]:
+    """The planes that could be a flat cut of a piece: (N, 3) points, (N, 3) outward unit normals
+    (`estimated` from the points, not scanned), the cloud's point spacing. Largest first, at most
+    MAX_PLANES; each point on one plane only."""
     n = len(points)
     tol, cos = PLANE_SPACINGS * spacing, np.cos(np.radians(PLANE_DEG))
     free = np.ones(n, bool)
@@ -125,17 +130,21 @@ def cut_planes(points: np.ndarray, normals: np.ndarray, spacing: float) -> list[
         if np.mean(front > BEHIND_SPACINGS * spacing) > BEHIND_SHARE:
             continue
         members = np.flatnonzero((np.abs(front) < tol) & (normals @ normal > cos))
-        plane = _plane(points, normals, members, _frame(normal, points[members].mean(0)), spacing)
+        plane = _plane(points, normals, members, _frame(normal, points[members].mean(0)), spacing, estimated)
         if plane is not None:
             planes.append(plane)
     return planes
 
 
-def _plane(points, normals, members, frame, spacing) -> CutPlane | None:
+def _plane(points, normals, members, frame, spacing, estimated=False) -> CutPlane | None:
     local = (points - frame[:3, 3]) @ frame[:3, :3]
     local_normals = normals @ frame[:3, :3]
     skin = np.ones(len(points), bool)
     skin[members] = False
+    if estimated:
+        band = skin & (local[:, 2] < 0) & (local[:, 2] > -RIM_BAND * spacing)
+        local_normals[band] = _skin_normals(local[band], local_normals[band],
+                                            local[skin & (local[:, 2] < -PLANE_SPACINGS * spacing)])
     near = skin & (local[:, 2] < 0) & (local[:, 2] > -RIM_BAND * spacing) & (np.abs(local_normals[:, 2]) < RIM_FLAT)
     p, m = local[near], local_normals[near]
     # along the skin towards the plane: e_z less its part along the normal
@@ -145,6 +154,19 @@ def _plane(points, normals, members, frame, spacing) -> CutPlane | None:
     if len(rim) < MIN_RIM_POINTS or np.median(np.abs(m[:, 2])) < MIN_TILT:
         return None
     return CutPlane(frame, local[members, :2], rim, m, members)
+
+
+def _skin_normals(points: np.ndarray, normals: np.ndarray, skin: np.ndarray) -> np.ndarray:
+    """(R, 3) unit normals of (R, 3) points fitted over their RIM_NEIGHBOURS nearest (S, 3) skin
+    points, turned to their (R, 3) old normals' side (kept where the skin is too sparse)."""
+    from scipy.spatial import cKDTree
+
+    if len(skin) < RIM_NEIGHBOURS or not len(points):
+        return normals
+    _, idx = cKDTree(skin).query(points, k=RIM_NEIGHBOURS)
+    near = skin[idx] - skin[idx].mean(1, keepdims=True)
+    fitted = np.linalg.eigh(np.einsum("rki,rkj->rij", near, near))[1][:, :, 0]
+    return fitted * np.where(np.einsum("ij,ij->i", fitted, normals) < 0, -1.0, 1.0)[:, None]
 
 
 def _flipped(plane: CutPlane) -> CutPlane:
