@@ -68,19 +68,22 @@ def cloud_fragment(name: str, points, normals=None, source: str | None = None,
     return CloudFragment(name, pts, np.zeros((0, 3), np.int32), source, tuple(notes), normals)
 
 
-def local_pca(points: np.ndarray, k: int = CLOUD_NEIGHBOURS) -> tuple[np.ndarray, np.ndarray]:
-    """Principal axes of every point's k nearest points (itself included).
+def local_pca(points: np.ndarray, k: int = CLOUD_NEIGHBOURS,
+              queries: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Principal axes of every point's k nearest points (itself included), or of the k nearest
+    `points` of each of the (M, 3) `queries`.
 
     Returns
     -------
-    values : (N, 3) eigenvalues of the neighbourhood covariance, ascending
+    values : (N, 3) eigenvalues of the neighbourhood covariance, ascending (M, 3 with queries)
     vectors : (N, 3, 3) the matching unit eigenvectors as columns (vectors[:, :, 0]: the normal)
     """
     from scipy.spatial import cKDTree
 
+    queries = points if queries is None else queries
     k = min(k, len(points))
-    _, idx = cKDTree(points).query(points, k=k)
-    q = points[idx.reshape(len(points), k)]
+    _, idx = cKDTree(points).query(queries, k=k)
+    q = points[idx.reshape(len(queries), k)]
     d = q - q.mean(axis=1, keepdims=True)
     return np.linalg.eigh(np.einsum("nki,nkj->nij", d, d) / k)
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import seam
+from ..cloud.points import local_pca
 from .icp import apply, invert, rotation_angle_deg
 
 # A cut plane: at least MIN_PLANE_SHARE of a piece's points within PLANE_SPACINGS point spacings
@@ -141,11 +142,11 @@ def _plane(points, normals, members, frame, spacing, estimated=False) -> CutPlan
     local_normals = normals @ frame[:3, :3]
     skin = np.ones(len(points), bool)
     skin[members] = False
+    band = skin & (local[:, 2] < 0) & (local[:, 2] > -RIM_BAND * spacing)
     if estimated:
-        band = skin & (local[:, 2] < 0) & (local[:, 2] > -RIM_BAND * spacing)
         local_normals[band] = _skin_normals(local[band], local_normals[band],
                                             local[skin & (local[:, 2] < -PLANE_SPACINGS * spacing)])
-    near = skin & (local[:, 2] < 0) & (local[:, 2] > -RIM_BAND * spacing) & (np.abs(local_normals[:, 2]) < RIM_FLAT)
+    near = band & (np.abs(local_normals[:, 2]) < RIM_FLAT)
     p, m = local[near], local_normals[near]
     # along the skin towards the plane: e_z less its part along the normal
     slope = np.stack([-m[:, 2] * m[:, 0], -m[:, 2] * m[:, 1], 1.0 - m[:, 2] ** 2], 1)
@@ -159,13 +160,9 @@ def _plane(points, normals, members, frame, spacing, estimated=False) -> CutPlan
 def _skin_normals(points: np.ndarray, normals: np.ndarray, skin: np.ndarray) -> np.ndarray:
     """(R, 3) unit normals of (R, 3) points fitted over their RIM_NEIGHBOURS nearest (S, 3) skin
     points, turned to their (R, 3) old normals' side (kept where the skin is too sparse)."""
-    from scipy.spatial import cKDTree
-
     if len(skin) < RIM_NEIGHBOURS or not len(points):
         return normals
-    _, idx = cKDTree(skin).query(points, k=RIM_NEIGHBOURS)
-    near = skin[idx] - skin[idx].mean(1, keepdims=True)
-    fitted = np.linalg.eigh(np.einsum("rki,rkj->rij", near, near))[1][:, :, 0]
+    fitted = local_pca(skin, RIM_NEIGHBOURS, queries=points)[1][:, :, 0]
     return fitted * np.where(np.einsum("ij,ij->i", fitted, normals) < 0, -1.0, 1.0)[:, None]
 
 
