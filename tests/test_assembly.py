@@ -330,10 +330,22 @@ def test_every_matched_pair_says_whether_it_was_accepted_and_why(broken):
 def test_objects_restrict_matching_to_pairs_within_one_class(broken):
     labels = [0, 0, 1, 1]
     result = assemble(broken.fragments, backend="numpy", progress=False, objects=labels)
-    assert result.candidates and all(labels[i] == labels[j] for i, j in result.candidates)
+    assert result.candidates == [(0, 1), (2, 3)]
     assert all(labels[m.a] == labels[m.b] for m in result.matches)
     with pytest.raises(ValueError, match="one class per fragment"):
         assemble(broken.fragments, backend="numpy", progress=False, objects=[0, 1])
+
+
+def test_a_small_heap_matches_every_pair_even_those_the_screen_scores_zero(broken, monkeypatch):
+    """A cloud that is mostly break picks little of it first and its screen votes find nothing:
+    in a heap of up to ALL_PAIRS_UP_TO fragments every pair is still matched in full."""
+    import relicgpu.heap.assembly as assembly_module
+
+    monkeypatch.setattr(assembly_module, "normalised_support", lambda support: np.zeros_like(support))
+    monkeypatch.setattr(assembly_module, "SCREEN_LCS_WEIGHT", 0.0)
+    result = assemble(broken.fragments, backend="numpy", progress=False)
+    assert result.candidates == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    assert result.n_groups == 1
 
 
 def test_assemble_small_synthetic_object(local_result, synth_dir):

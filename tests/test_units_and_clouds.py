@@ -322,6 +322,43 @@ def test_a_piece_with_no_rough_point_is_matched_on_its_wide_pick(seed):
 
 
 @pytest.mark.parametrize("with_normals", [True, False])
+def test_the_rough_class_is_picked_where_it_is_most_of_a_piece(with_normals):
+    """An inner piece of a many-piece break is mostly break (78% here): a pick above its median
+    roughness holds a tenth of it, the rough class of Otsu's split most of it; a piece that is
+    mostly skin has no such class (no point)."""
+    import trimesh
+
+    from relicgpu.synth import corpus
+    from relicgpu.pair.cloudmatch import cloud_likelihood
+
+    def picks(fragment, labels, seed):
+        mesh = fragment.to_trimesh()
+        p, face = trimesh.sample.sample_surface(mesh, 2500, seed=seed)
+        given = mesh.face_normals[face] if with_normals else None
+        truth = np.asarray(labels, bool)[face]
+        return truth, cloud_likelihood(p, given) >= 0.5, cloud_likelihood(p, given, majority=True) >= 0.5
+
+    r = corpus.generate("rough-clean", pieces=5, seed=0, faces=3000)
+    truth, first, rough = picks(r.fragments[3], r.fracture_faces[3], 3)
+    assert truth.mean() > 0.7
+    assert (first & truth).sum() < 0.15 * truth.sum()
+    assert (rough & truth).sum() > 0.7 * truth.sum() and (rough & truth).sum() > 0.7 * rough.sum()
+    slab = synth.generate("slab", pieces=2, seed=0, faces=4000, noise=0.0005, progress=False)
+    truth, first, rough = picks(slab.fragments[0], slab.fracture_faces[0], 0)
+    assert (first & truth).sum() > 0.9 * truth.sum() and not rough.any()
+
+
+def test_a_piece_that_is_mostly_break_is_matched_on_its_rough_class():
+    """A rough break scanned without normals whose pieces read mostly rough (corpus seed 10):
+    the picks above the median roughness find no fit, the crease regions none either; the rough
+    classes of both pieces match right."""
+    frags, truth = _corpus_cloud_pair("rough-clean", 10, 40, with_normals=False)
+    result = match_pair(*frags, backend="numpy")
+    assert "mostly break" in result.reason, result.reason
+    _assert_right(result, frags[1], truth)
+
+
+@pytest.mark.parametrize("with_normals", [True, False])
 def test_a_flat_break_is_turned_by_the_skin_across_its_seam(with_normals):
     """A flat cut through a rounded solid (the corpus's Voronoi cell, scanned with and without
     normals): its crease regions fit at several turns alike, and it was refused as ambiguous; the

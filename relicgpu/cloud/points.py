@@ -183,7 +183,7 @@ def estimate_normals(points: np.ndarray, given: np.ndarray | None = None, k: int
 
 
 def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_NORMAL_NEIGHBOURS,
-                        spreads: float | None = None) -> np.ndarray:
+                        spreads: float | None = None, majority: bool = False) -> np.ndarray:
     """Likelihood that each point lies on fracture surface, from the roughness of its normals.
 
     Roughness is a low quantile (ROUGH_QUANTILE) of the angles between a point's normal and
@@ -204,6 +204,8 @@ def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_
     normals : (N, 3) unit normals (orientation is not used)
     k : neighbours per point
     spreads : the split's distance above the median in robust spreads (None: ROUGH_SPREADS)
+    majority : split at Otsu's threshold where the median lies above it (most of the piece reads
+        rough: an inner piece of a many-piece break), and give 0 everywhere where it does not
 
     Returns
     -------
@@ -225,7 +227,13 @@ def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_
     centre = np.median(x)
     noise = 1.4826 * np.median(np.abs(x - centre)) or 1.0
     spreads = ROUGH_SPREADS if spreads is None else spreads
-    split = max(otsu_split(x, np.ones(len(x))), centre + spreads * noise)
+    otsu = otsu_split(x, np.ones(len(x)))
+    if majority:
+        if centre <= otsu:
+            return np.zeros(len(x))
+        split = otsu
+    else:
+        split = max(otsu, centre + spreads * noise)
     return 1.0 / (1.0 + np.exp(-(x - split) / noise))
 
 

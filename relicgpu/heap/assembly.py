@@ -269,9 +269,13 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
             if objects.shape != (n,):
                 raise ValueError(f"objects: one class per fragment expected, got {objects.shape} for {n}")
             scores = np.where(objects[:, None] == objects[None, :], scores, 0.0)
-        if top_k is None:
-            top_k = n - 1 if n <= ALL_PAIRS_UP_TO else TOP_K
-        candidates = select_candidates(scores, top_k)
+        if top_k is None and n <= ALL_PAIRS_UP_TO:
+            # every pair, those the screen scores 0 too (a cloud that is mostly break picks little of
+            # it first, and its votes find nothing), but not across the given objects
+            candidates = [(i, j) for i in range(n) for j in range(i + 1, n)
+                          if objects is None or objects[i] == objects[j]]
+        else:
+            candidates = select_candidates(scores, top_k or TOP_K)
         timings["screen"] = time.perf_counter() - t0
         stats["candidates"] = len(candidates)
         stats["pairs"] = n * (n - 1) // 2

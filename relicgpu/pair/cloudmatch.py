@@ -2,7 +2,7 @@
 
 A sparse scan (a few thousand points a piece) of a thin board or an open surface does not close
 into a solid, so it has no mesh to segment. Its fracture points are picked by the roughness of
-the normals around each point (`pointcloud.fracture_likelihood`), and the rest of the pipeline
+the normals around each point (`points.fracture_likelihood`), and the rest of the pipeline
 (point-pair votes, ICP, verification) runs on them as on a mesh's fracture sample.
 
 A clean break (a smooth or flat cut, as ceramics and Voronoi cell fracture make) is not rough,
@@ -206,27 +206,29 @@ def plane_samples(points: np.ndarray, given_normals: np.ndarray | None, params: 
     return out
 
 
-def cloud_likelihood(points: np.ndarray, given_normals: np.ndarray | None, spreads: float | None = None) -> np.ndarray:
+def cloud_likelihood(points: np.ndarray, given_normals: np.ndarray | None, spreads: float | None = None,
+                     majority: bool = False) -> np.ndarray:
     """(N,) fracture likelihood of a cloud's (N, 3) points, from the scan's own (N, 3) normals
-    where it has them, else from the normals of small local plane fits (spreads: as for
-    `pointcloud.fracture_likelihood`)."""
+    where it has them, else from the normals of small local plane fits (spreads, majority: as for
+    `points.fracture_likelihood`)."""
     rough_normals = given_normals if given_normals is not None else local_pca(points, ROUGHNESS_NEIGHBOURS)[1][:, :, 0]
-    return fracture_likelihood(points, rough_normals, spreads=spreads)
+    return fracture_likelihood(points, rough_normals, spreads=spreads, majority=majority)
 
 
 def fracture_points(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
-                    spreads: float | None = None, likelihood: np.ndarray | None = None) -> np.ndarray:
+                    spreads: float | None = None, likelihood: np.ndarray | None = None,
+                    majority: bool = False) -> np.ndarray:
     """Indices of a cloud's fracture points: those of fracture likelihood >= 0.5 (`cloud_likelihood`
     of the (N, 3) points and optional (N, 3) normals, unless given), at most params.icp_points
     spread evenly."""
     if likelihood is None:
-        likelihood = cloud_likelihood(points, given_normals, spreads)
+        likelihood = cloud_likelihood(points, given_normals, spreads, majority)
     fracture = np.flatnonzero(likelihood >= 0.5)
     return fracture[even_subsample(points[fracture], params.icp_points)]
 
 
 def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: Params,
-                 scale: float, spreads: float | None = None) -> SurfaceSample:
+                 scale: float, spreads: float | None = None, majority: bool = False) -> SurfaceSample:
     """The sample a cloud is matched on.
 
     Parameters
@@ -235,7 +237,9 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
     given_normals : (N, 3) outward unit normals of the scan, or None (estimated and oriented)
     params : Params (icp_points, ppf_normal_radius)
     scale : the length relative parameters are fractions of
-    spreads : how strictly fracture is picked (`pointcloud.fracture_likelihood`; None: its default)
+    spreads : how strictly fracture is picked (`points.fracture_likelihood`; None: its default)
+    majority : pick the rough class where it is most of the piece (`points.fracture_likelihood`;
+        no fracture points where it is not)
 
     Returns
     -------
@@ -244,7 +248,7 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
     """
     points = np.asarray(points, np.float64)
     normals = estimate_normals(points, given_normals)
-    fracture = fracture_points(points, given_normals, params, spreads)
+    fracture = fracture_points(points, given_normals, params, spreads, majority=majority)
     surf = even_subsample(points, 2 * params.icp_points)
     plane_normals = smoothed_normals(points[fracture], normals[fracture], params.ppf_normal_radius * scale)
     return SurfaceSample(points[fracture], np.zeros(len(fracture), np.int64), normals[fracture], points[surf],

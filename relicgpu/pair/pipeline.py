@@ -142,6 +142,8 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
         result = _skin_continues(pa, pb, params, scale, _match_strict(pa, pb, params, be, scale, timings, result))
         if not result.accepted:
             result = _match_regions(pa, pb, params, be, scale, timings, result)
+        if not result.accepted:
+            result = _match_majority(pa, pb, params, be, scale, timings, result)
     return _held_by_skin(pa, pb, params, be, scale, result) if clouds and result.accepted else result
 
 
@@ -225,6 +227,28 @@ def _match_strict(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
     score = ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return replace(strict, accepted=ver.accepted, score=score, rmse=ver.rmse, overlap=ver.overlap,
                    penetration=ver.penetration, reason=ver.reason if ver.accepted else result.reason)
+
+
+def _match_majority(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
+                    result: PairMatch) -> PairMatch:
+    """Two clouds matched on the rough class of each piece where it is most of the piece
+    (`cloud_sample(majority=True)`; a piece whose bulk reads smooth takes its wide pick), as a last
+    try: an inner piece of a many-piece break is mostly break, and the picks above its median
+    roughness hold a tenth of it (result: kept where this finds no fit)."""
+    def sample(p, **pick):
+        return cloud_sample(p.fragment.vertices, getattr(p.fragment, "normals", None), params, scale, **pick)
+
+    found = [sample(p, majority=True) for p in (pa, pb)]
+    if not any(len(s.fracture) for s in found):
+        return result
+    found = [s if len(s.fracture) else sample(p, spreads=WIDE_SPREADS) for s, p in zip(found, (pa, pb))]
+    if not all(len(s.fracture) for s in found):
+        return result
+    ma, mb = replace(pa, sample=found[0]), replace(pb, sample=found[1])
+    fit = _skin_continues(ma, mb, params, scale, _match_prepared(ma, mb, params, be, None, scale, dict(timings)))
+    if not fit.accepted:
+        return result
+    return replace(fit, reason=f"{fit.reason} (on the rough class of a piece that is mostly break)")
 
 
 def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
