@@ -255,6 +255,20 @@ def cloud_sample(points: np.ndarray, given_normals: np.ndarray | None, params: P
                          normals[surf], plane_normals)
 
 
+def majority_samples(fragments, params: Params, scale: float) -> list[SurfaceSample] | None:
+    """The samples two cloud fragments are matched on last: each piece's rough class where it is
+    most of the piece (`cloud_sample(majority=True)`), its wide pick (WIDE_SPREADS) where its bulk
+    reads smooth; None where neither reads mostly rough or one picks nothing."""
+    def sample(f, **pick):
+        return cloud_sample(f.vertices, getattr(f, "normals", None), params, scale, **pick)
+
+    found = [sample(f, majority=True) for f in fragments]
+    if not any(len(s.fracture) for s in found):
+        return None
+    found = [s if len(s.fracture) else sample(f, spreads=WIDE_SPREADS) for s, f in zip(found, fragments)]
+    return found if all(len(s.fracture) for s in found) else None
+
+
 def cloud_skin(fragment, sample: SurfaceSample, below: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """The skin of a cloud fragment's surface sample: its (K, 3) points of fracture likelihood
     (`cloud_likelihood` over all the fragment's points) under `below`, and their (K, 3) normals."""

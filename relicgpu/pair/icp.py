@@ -98,6 +98,18 @@ def same_pose(p: np.ndarray, q: np.ndarray, tol: float) -> bool:
     return np.linalg.norm(p[:3, 3] - q[:3, 3]) < 3 * tol and rotation_angle_deg(p[:3, :3] @ q[:3, :3].T) < 10.0
 
 
+def distinct_poses(poses: np.ndarray, order: np.ndarray, count: int, tol: float) -> list[int]:
+    """The first `count` of `order` whose poses differ from every one taken before (many starts
+    converge to one pose; copies would crowd the others out of the hypotheses)."""
+    taken: list[int] = []
+    for k in order:
+        if len(taken) == count:
+            break
+        if not any(same_pose(poses[k], poses[t], tol) for t in taken):
+            taken.append(int(k))
+    return taken
+
+
 def rotation_angle_deg(r: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
 

@@ -11,15 +11,16 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..backends import resolve
-from .icp import (apply, batched_icp, facing_poses, invert, ransac_poses, refine_point_to_plane, rotation_angle_deg,
-                  same_pose)
+from .icp import (apply, batched_icp, distinct_poses, facing_poses, invert, ransac_poses, refine_point_to_plane,
+                  rotation_angle_deg, same_pose)
 from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params
 from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP, MIN_PICK_SKIN, PICK_SKIN_NEAR,
                          PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS, point_spacing, REGION_FACING, REGION_OVERLAP,
                          REGION_RESIDUAL, REGION_TURNS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS, SKIN_RIVALS_ESTIMATED,
-                         WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness, verify_clouds)
+                         WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness, majority_samples,
+                         verify_clouds)
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .planar import apart, polished_fits
 from .ppf import vote_poses
@@ -49,18 +50,6 @@ class PairMatch:
             "correspondences": self.correspondences.tolist(), "reason": self.reason,
             "timings": {k: round(float(v), 6) for k, v in self.timings.items()},
         }
-
-
-def _distinct(poses: np.ndarray, order: np.ndarray, count: int, tol: float) -> list[int]:
-    """The first `count` of `order` whose poses differ from every one taken before (many starts
-    converge to one pose; copies would crowd the others out of the hypotheses)."""
-    taken: list[int] = []
-    for k in order:
-        if len(taken) == count:
-            break
-        if not any(same_pose(poses[k], poses[t], tol) for t in taken):
-            taken.append(int(k))
-    return taken
 
 
 def _main_patches(patches, params: Params):
@@ -231,24 +220,15 @@ def _match_strict(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
 
 def _match_majority(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
                     result: PairMatch) -> PairMatch:
-    """Two clouds matched on the rough class of each piece where it is most of the piece
-    (`cloud_sample(majority=True)`; a piece whose bulk reads smooth takes its wide pick), as a last
-    try: an inner piece of a many-piece break is mostly break, and the picks above its median
-    roughness hold a tenth of it (result: kept where this finds no fit)."""
-    def sample(p, **pick):
-        return cloud_sample(p.fragment.vertices, getattr(p.fragment, "normals", None), params, scale, **pick)
-
-    found = [sample(p, majority=True) for p in (pa, pb)]
-    if not any(len(s.fracture) for s in found):
-        return result
-    found = [s if len(s.fracture) else sample(p, spreads=WIDE_SPREADS) for s, p in zip(found, (pa, pb))]
-    if not all(len(s.fracture) for s in found):
+    """Two clouds matched last on `cloudmatch.majority_samples` (an inner piece of a many-piece
+    break is mostly break; the first pick holds a tenth of it): result kept where no fit passes."""
+    found = majority_samples([p.fragment for p in (pa, pb)], params, scale)
+    if found is None:
         return result
     ma, mb = replace(pa, sample=found[0]), replace(pb, sample=found[1])
     fit = _skin_continues(ma, mb, params, scale, _match_prepared(ma, mb, params, be, None, scale, dict(timings)))
-    if not fit.accepted:
-        return result
-    return replace(fit, reason=f"{fit.reason} (on the rough class of a piece that is mostly break)")
+    why = " (on the rough class of a piece that is mostly break)"
+    return replace(fit, reason=fit.reason + why) if fit.accepted else result
 
 
 def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
@@ -351,7 +331,8 @@ def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict, ri
     if params.min_skin is None:
         return None
     contact = params.contact_distance * scale
-    distinct = [accepted[k] for k in _distinct([fit[1] for fit in accepted], range(len(accepted)), SKIN_FITS, contact)]
+    poses = [fit[1] for fit in accepted]
+    distinct = [accepted[k] for k in distinct_poses(poses, range(len(accepted)), SKIN_FITS, contact)]
     skins = [seam.skin_continuation(sa, sb, t, contact, scale) for _, t, _, sa, sb, *_ in distinct]
     best = int(np.argmax(skins))
     transform = distinct[best][1]
@@ -518,7 +499,7 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
         poses, share = batched_icp(sub_b, pa.sample.fracture, poses[keep], be, params.screen_more_iterations,
                                    reject, floor, trim=params.screen_trim, index=index_of(pa.sample.fracture),
                                    weights=sub_w, target_weights=w_a)
-        order = _distinct(poses, np.argsort(-share, kind="stable"), params.hypotheses, 0.02 * scale)
+        order = distinct_poses(poses, np.argsort(-share, kind="stable"), params.hypotheses, 0.02 * scale)
         candidates = [(share[k], poses[k], *origins[keep[k]][1:]) for k in order]
     timings["coarse"] = time.perf_counter() - t0
 
