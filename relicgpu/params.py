@@ -119,6 +119,10 @@ class Params:
     # eigenvalue of the normal tensor there) by at least min_outline (None: never)
     residual_band: float = 1.6
     min_outline: float | None = 0.3
+    # ... with the skin beside the seam continuing the partner's (`seam.skin_continuation`) by at
+    # least outline_skin: a flat break turned half a turn keeps a symmetric outline but lays its
+    # sides across the partner's (None: not asked)
+    outline_skin: float | None = 0.1
     # ... or where the skin beside the seam continues the partner's (`seam.skin_continuation`) by
     # at least min_skin (None: never). Clouds with normals: the crease-region fit whose skin
     # continues most, at least this much, is taken (`pipeline._by_skin`; None: never)

@@ -147,6 +147,23 @@ def test_a_rescanned_pair_is_accepted_on_its_outline_and_only_there(noisy_pair):
     assert rotation_angle_deg(skin.transform[:3, :3] @ truth[:3, :3].T) < 2.0
 
 
+def test_a_half_turn_whose_outline_agrees_but_whose_skin_does_not_continue_is_refused():
+    """A flat rescanned break turned half a turn keeps its nearly symmetric outline but lays its
+    sides across the partner's: the skin beside the seam does not continue (corpus voronoi-noisy
+    seed 1, outlines agree 0.67, skin 0.02). Accepted on its outline where the skin is not asked
+    (`Params.outline_skin` None), refused where it is."""
+    from relicgpu.synth import corpus
+
+    r = corpus.generate("voronoi-noisy", 2, 1, 6000)
+    truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
+    a, b = r.fragments
+    unasked = pl.match_pair(a, b, Params(outline_skin=None), "numpy")
+    assert unasked.accepted and unasked.reason.startswith("accepted on its outline"), unasked.reason
+    assert rotation_angle_deg(unasked.transform[:3, :3] @ truth[:3, :3].T) > 90.0
+    m = pl.match_pair(a, b, Params(), "numpy")
+    assert not m.accepted, m.reason
+
+
 def test_assembly_joins_the_match_whose_rims_agree_before_a_better_scored_one(halves):
     """Two verified fits of one pair: the turned one scores more (a flat break laid on its partner
     crosswise touches as widely), the right one puts the rims together and is joined first."""

@@ -25,7 +25,8 @@ from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prep
 from .planar import apart, polished_fits
 from .ppf import vote_poses
 from . import seam
-from .verify import index_cache, rim_agreement, verify
+from .meshfit import outline_fit, verify_mesh
+from .verify import index_cache, rim_agreement
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,7 +74,7 @@ def _as_prepared(x, params, backend, scale) -> Prepared:
 # matches first and weighs these less in its votes (corpus voronoi-clean, 5 pieces: 5 wrong fits
 # of the second reading, scored alike with the right ones, split the object in two)
 SECOND_READING_SCORE = 0.5
-# a fit accepted on its outline with a residual over max_rmse (`_outline_fit`) is less sure: the
+# a fit accepted on its outline with a residual over max_rmse (`meshfit.outline_fit`) is less sure: the
 # assembly weighs it this much
 OUTLINE_SCORE = 0.5
 
@@ -366,15 +367,15 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     t1 = time.perf_counter()
     # verify the best-touching fits first; stop at the first accepted
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
-    best, by_outline = None, None  # by_outline: (transform, verification, ca, cb, pairs) of `_outline_fit`
+    best, by_outline = None, None  # by_outline: (transform, verification, ca, cb, pairs) of `meshfit.outline_fit`
     for transform, ca, cb, pairs in fits:
         if clouds:  # mutual overlap, facing, interpenetration near the other surface only
             ver = verify_clouds(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
                                 params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale, index_of)
         else:
-            ver = _verify_mesh(pa.sample, pb.sample, transform, be, params, scale, index_of, params.max_rmse)
+            ver = verify_mesh(pa.sample, pb.sample, transform, be, params, scale, index_of, params.max_rmse)
             if by_outline is None and not ver.accepted and ver.reason.startswith("residual"):
-                outline = _outline_fit(pa.sample, pb.sample, transform, be, params, scale, index_of, ver)
+                outline = outline_fit(pa.sample, pb.sample, transform, be, params, scale, index_of, ver)
                 by_outline = None if outline is None else (transform, outline, ca, cb, pairs)
         rank = (ver.accepted, ver.overlap - ver.penetration)
         if best is None or rank > best[0]:
@@ -397,42 +398,6 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     score = weight * ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
                      pairs, ca, cb, ver.reason, timings)
-
-
-def _verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, max_rmse: float):
-    """`verify` of a mesh pair's fit with `params`' checks, the residual bound `max_rmse` (of the scale)."""
-    return verify(a, b, transform, be, params.contact_distance * scale, max_rmse * scale, params.min_overlap,
-                  params.penetration_depth * scale, params.max_penetration, index_of, min_facing=params.min_facing,
-                  max_surface_penetration=params.max_surface_penetration)
-
-
-def _outline_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, failed):
-    """The verification of a fit refused only for its residual (`failed`), accepted where its
-    residual lies within `residual_band` times the bound and the two outlines agree by at least
-    `min_outline`, or the skin beside the seam continues the partner's by at least `min_skin`
-    (`Params`); None otherwise. A rescanned break's right fit mates less closely than a clean
-    one's, and its sharp edges are rounded away; where the surfaces turn at a working length the
-    two pieces' outlines still meet, and the skins on both sides of the seam still run on."""
-    outlines = params.min_outline is not None and a.outline is not None and b.outline is not None
-    if not outlines and params.min_skin is None:
-        return None
-    if failed.rmse > params.residual_band * params.max_rmse * scale:
-        return None  # out of the band: no second verification needed to know
-    ver = _verify_mesh(a, b, transform, be, params, scale, index_of, params.residual_band * params.max_rmse)
-    if not ver.accepted:
-        return None
-    contact = params.contact_distance * scale
-    if outlines:
-        agree = rim_agreement(replace(a, creases=a.outline), replace(b, creases=b.outline), transform, contact,
-                              index_of)
-        if agree >= params.min_outline:
-            return replace(ver, reason=f"accepted on its outline (outlines agree {agree:.2f}; {failed.reason})")
-    if params.min_skin is not None:
-        skin = seam.skin_continuation(a, b, transform, contact, scale)
-        if skin >= params.min_skin:
-            return replace(ver, reason=f"accepted on its skin (the skin beside the seam continues {skin:.2f}; "
-                                       f"{failed.reason})")
-    return None
 
 
 def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict):

@@ -18,7 +18,7 @@ on the `free_surface` of both pieces).
 `skin_continuation` asks the same quadrics a question instead: how much of the surface beside
 the seam runs on into the partner's. It needs no segmentation and holds on rescanned breaks,
 whose creases are noise: a mesh fit refused only for its residual is accepted on it
-(`pipeline._outline_fit`, `Params.min_skin`), and of a flat cloud break's region fits, which fit
+(`meshfit.outline_fit`, `Params.min_skin`), and of a flat cloud break's region fits, which fit
 at several turns alike, it picks the turn (`pipeline._by_skin`).
 """
 from __future__ import annotations
