@@ -164,6 +164,24 @@ def test_a_half_turn_whose_outline_agrees_but_whose_skin_does_not_continue_is_re
     assert not m.accepted, m.reason
 
 
+def test_a_thin_walls_fit_that_faces_too_little_is_accepted_on_its_rims():
+    """A coarse vessel's break is a narrow band: at the right fit its skins beside the seam touch
+    side by side over more points than the band faces the partner's (corpus vessel-coarse seed
+    4 faces 0.03, under min_facing 0.06), but its rims lie on the partner's creases (0.52):
+    accepted on them, scored half, and refused for facing where they are not asked."""
+    from relicgpu.synth import corpus
+
+    r = corpus.generate("vessel-coarse", 2, 4, 6000)
+    truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
+    a, b = r.fragments
+    m = pl.match_pair(a, b, Params(), "numpy")
+    assert m.accepted and m.reason.startswith("accepted on its rims"), m.reason
+    assert rotation_angle_deg(m.transform[:3, :3] @ truth[:3, :3].T) < 2.0
+    assert abs(m.score - pl.OUTLINE_SCORE * m.overlap * (1 - m.penetration)) < 1e-9
+    unasked = pl.match_pair(a, b, Params(facing_rims=None, second_segmentation=None), "numpy")
+    assert not unasked.accepted and unasked.reason.startswith("facing"), unasked.reason
+
+
 def test_assembly_joins_the_match_whose_rims_agree_before_a_better_scored_one(halves):
     """Two verified fits of one pair: the turned one scores more (a flat break laid on its partner
     crosswise touches as widely), the right one puts the rims together and is joined first."""

@@ -1,5 +1,7 @@
-"""Verification of a mesh pair's fit: the checks of `verify` with `Params`' bounds, and the
-residual band where a rescanned break's outline or skin speaks for it (`outline_fit`)."""
+"""Verification of a mesh pair's fit: the checks of `verify` with `Params`' bounds; the residual
+band where a rescanned break's outline or skin speaks for it (`outline_fit`); a thin wall's fit
+that faces too little, taken where its rims meet the partner's creases (`rims_fit`); `band_fit`
+asks the one that a refused fit's reason calls for."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -49,4 +51,31 @@ def outline_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, i
         if skin >= params.min_skin:
             return replace(ver, reason=f"accepted on its skin (the skin beside the seam continues {skin:.2f}; "
                                        f"{failed.reason})")
+    return None
+
+
+def rims_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, failed):
+    """The verification of a fit refused only for facing too little (`failed`), accepted where its
+    rims meet the partner's creases by at least `Params.facing_rims`; None otherwise. A thin
+    wall's break is a narrow band: at the right fit the skins beside the seam touch side by side
+    over more points than the band does face to face (coarse vessels face 0.01-0.04), but the
+    band's sharp rims lie on the partner's (0.41-0.52, where wrong fits refused for facing reach
+    0.35; `docs/benchmarks.md`)."""
+    if params.facing_rims is None:
+        return None
+    agree = rim_agreement(a, b, transform, params.contact_distance * scale, index_of)
+    if agree < params.facing_rims:
+        return None
+    ver = verify_mesh(a, b, transform, be, replace(params, min_facing=0.0), scale, index_of, params.max_rmse)
+    if not ver.accepted:
+        return None
+    return replace(ver, reason=f"accepted on its rims (rims agree {agree:.2f}; {failed.reason})")
+
+
+def band_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, failed):
+    """`outline_fit` of a fit refused for its residual, `rims_fit` of one refused for facing, else None."""
+    if failed.reason.startswith("residual"):
+        return outline_fit(a, b, transform, be, params, scale, index_of, failed)
+    if failed.reason.startswith("facing"):
+        return rims_fit(a, b, transform, be, params, scale, index_of, failed)
     return None

@@ -25,7 +25,7 @@ from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prep
 from .planar import apart, polished_fits
 from .ppf import vote_poses
 from . import seam
-from .meshfit import outline_fit, verify_mesh
+from .meshfit import band_fit, verify_mesh
 from .verify import index_cache, rim_agreement
 
 
@@ -74,8 +74,8 @@ def _as_prepared(x, params, backend, scale) -> Prepared:
 # matches first and weighs these less in its votes (corpus voronoi-clean, 5 pieces: 5 wrong fits
 # of the second reading, scored alike with the right ones, split the object in two)
 SECOND_READING_SCORE = 0.5
-# a fit accepted on its outline with a residual over max_rmse (`meshfit.outline_fit`) is less sure: the
-# assembly weighs it this much
+# a fit accepted on its outline with a residual over max_rmse, or on its rims facing too little
+# (`meshfit.band_fit`), is less sure: the assembly weighs it this much
 OUTLINE_SCORE = 0.5
 
 
@@ -367,15 +367,15 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     t1 = time.perf_counter()
     # verify the best-touching fits first; stop at the first accepted
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
-    best, by_outline = None, None  # by_outline: (transform, verification, ca, cb, pairs) of `meshfit.outline_fit`
+    best, by_outline = None, None  # by_outline: (transform, verification, ca, cb, pairs) of `meshfit.band_fit`
     for transform, ca, cb, pairs in fits:
         if clouds:  # mutual overlap, facing, interpenetration near the other surface only
             ver = verify_clouds(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
                                 params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale, index_of)
         else:
             ver = verify_mesh(pa.sample, pb.sample, transform, be, params, scale, index_of, params.max_rmse)
-            if by_outline is None and not ver.accepted and ver.reason.startswith("residual"):
-                outline = outline_fit(pa.sample, pb.sample, transform, be, params, scale, index_of, ver)
+            if by_outline is None and not ver.accepted:
+                outline = band_fit(pa.sample, pb.sample, transform, be, params, scale, index_of, ver)
                 by_outline = None if outline is None else (transform, outline, ca, cb, pairs)
         rank = (ver.accepted, ver.overlap - ver.penetration)
         if best is None or rank > best[0]:
