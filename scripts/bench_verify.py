@@ -128,6 +128,7 @@ def remeshed_pair(shape: str, seed: int, n_points: int = 40000, noise: float = 0
 
 
 def collect(args) -> int:
+    import relicgpu.pair.meshfit as mf
     import relicgpu.pair.pipeline as pl
     from relicgpu.backends import resolve
     from relicgpu.heap.evaluate import relative_pose_error
@@ -137,7 +138,7 @@ def collect(args) -> int:
     # one reading's fits: the spy refuses every fit, so a second reading would run on every pair
     params = with_segmentations(Params(), args.segmentation, "none")
     be = resolve(args.backend)
-    original = pl.verify
+    original = mf.verify  # the mesh fits' verification (meshfit.verify_mesh)
     calls: list = []
 
     def spy(a, b, transform, *rest, **kw):
@@ -148,7 +149,7 @@ def collect(args) -> int:
             k: x for k, x in kw.items() if k != "index_of" and not callable(x)}, "verdict": v})
         return replace(v, accepted=False)
 
-    pl.verify = spy
+    mf.verify = spy
     records = []
     for fam, seed, kind, a, b, truth, size in _cases(args):
         t0 = time.perf_counter()
@@ -172,7 +173,7 @@ def collect(args) -> int:
               f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr, flush=True)
         with open(args.out, "wb") as fh:  # after every case: a stopped run keeps what it finished
             pickle.dump(records, fh, protocol=5)
-    pl.verify = original
+    mf.verify = original
     return 0
 
 
