@@ -123,14 +123,14 @@ class Params:
     # least outline_skin: a flat break turned half a turn keeps a symmetric outline but lays its
     # sides across the partner's (None: not asked)
     outline_skin: float | None = 0.1
-    # a mesh fit that passes every check but facing is accepted where its rims meet the
-    # partner's creases (`verify.rim_agreement`) by at least facing_rims: a thin wall's narrow
-    # band faces over fewer points than its skins touch side by side (None: never)
-    facing_rims: float | None = 0.4
     # ... or where the skin beside the seam continues the partner's (`seam.skin_continuation`) by
     # at least min_skin (None: never). Clouds with normals: the crease-region fit whose skin
     # continues most, at least this much, is taken (`pipeline._by_skin`; None: never)
     min_skin: float | None = 0.2
+    # a mesh fit that passes every check but facing is accepted where its rims meet the
+    # partner's creases (`verify.rim_agreement`) by at least facing_rims: a thin wall's narrow
+    # band faces over fewer points than its skins touch side by side (None: never)
+    facing_rims: float | None = 0.4
     # clouds: a flat cut whose rim and face the partner's hold by at least min_plane
     # (`planar.fit_score`), with no fit at another turn close (`pipeline._match_planes`), is
     # taken before the crease regions are tried (None: never)

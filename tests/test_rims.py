@@ -120,21 +120,26 @@ def test_outline_points_find_a_rounded_crease_that_no_edge_angle_shows():
     assert np.all(near.sum(axis=1) >= 2)  # near two faces at once: along an edge
 
 
+def corpus_pair(family: str, seed: int):
+    """The two fragments of a two-piece corpus object (6,000 faces a piece) and the truth
+    carrying the second onto the first."""
+    from relicgpu.synth import corpus
+
+    r = corpus.generate(family, 2, seed, 6000)
+    return r.fragments, np.linalg.inv(r.poses[0]) @ r.poses[1]
+
+
 @pytest.fixture(scope="module")
 def noisy_pair():
     """A two-piece object of smooth cuts, rescanned (noise, smoothing reconstruction, decimation)."""
-    from relicgpu.synth import corpus
-
-    r = corpus.generate("smooth-noisy", 2, 0, 6000)
-    return r, np.linalg.inv(r.poses[0]) @ r.poses[1]
+    return corpus_pair("smooth-noisy", 0)
 
 
 def test_a_rescanned_pair_is_accepted_on_its_outline_and_only_there(noisy_pair):
     """The right fit of a rescanned break mates less closely than max_rmse allows; it passes on its
     outline, scored half, on its skin where outlines are not consulted, and is refused for its
     residual where neither is."""
-    r, truth = noisy_pair
-    a, b = r.fragments
+    (a, b), truth = noisy_pair
     m = pl.match_pair(a, b, Params(), "numpy")
     assert m.accepted and m.reason.startswith("accepted on its outline"), m.reason
     assert rotation_angle_deg(m.transform[:3, :3] @ truth[:3, :3].T) < 2.0
@@ -152,11 +157,7 @@ def test_a_half_turn_whose_outline_agrees_but_whose_skin_does_not_continue_is_re
     sides across the partner's: the skin beside the seam does not continue (corpus voronoi-noisy
     seed 1, outlines agree 0.67, skin 0.02). Accepted on its outline where the skin is not asked
     (`Params.outline_skin` None), refused where it is."""
-    from relicgpu.synth import corpus
-
-    r = corpus.generate("voronoi-noisy", 2, 1, 6000)
-    truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
-    a, b = r.fragments
+    (a, b), truth = corpus_pair("voronoi-noisy", 1)
     unasked = pl.match_pair(a, b, Params(outline_skin=None), "numpy")
     assert unasked.accepted and unasked.reason.startswith("accepted on its outline"), unasked.reason
     assert rotation_angle_deg(unasked.transform[:3, :3] @ truth[:3, :3].T) > 90.0
@@ -169,11 +170,7 @@ def test_a_thin_walls_fit_that_faces_too_little_is_accepted_on_its_rims():
     side by side over more points than the band faces the partner's (corpus vessel-coarse seed
     4 faces 0.03, under min_facing 0.06), but its rims lie on the partner's creases (0.52):
     accepted on them, scored half, and refused for facing where they are not asked."""
-    from relicgpu.synth import corpus
-
-    r = corpus.generate("vessel-coarse", 2, 4, 6000)
-    truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
-    a, b = r.fragments
+    (a, b), truth = corpus_pair("vessel-coarse", 4)
     m = pl.match_pair(a, b, Params(), "numpy")
     assert m.accepted and m.reason.startswith("accepted on its rims"), m.reason
     assert rotation_angle_deg(m.transform[:3, :3] @ truth[:3, :3].T) < 2.0

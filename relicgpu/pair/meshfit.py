@@ -5,6 +5,7 @@ asks the one that a refused fit's reason calls for."""
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import cache
 
 import numpy as np
 
@@ -38,19 +39,15 @@ def outline_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, i
     if not ver.accepted:
         return None
     contact = params.contact_distance * scale
-    skin = None
+    skin = cache(lambda: seam.skin_continuation(a, b, transform, contact, scale))  # asked at most once
     if outlines:
         agree = rim_agreement(replace(a, creases=a.outline), replace(b, creases=b.outline), transform, contact,
                               index_of)
-        if agree >= params.min_outline:
-            skin = seam.skin_continuation(a, b, transform, contact, scale) if params.outline_skin is not None else None
-            if skin is None or skin >= params.outline_skin:
-                return replace(ver, reason=f"accepted on its outline (outlines agree {agree:.2f}; {failed.reason})")
-    if params.min_skin is not None:
-        skin = seam.skin_continuation(a, b, transform, contact, scale) if skin is None else skin
-        if skin >= params.min_skin:
-            return replace(ver, reason=f"accepted on its skin (the skin beside the seam continues {skin:.2f}; "
-                                       f"{failed.reason})")
+        if agree >= params.min_outline and (params.outline_skin is None or skin() >= params.outline_skin):
+            return replace(ver, reason=f"accepted on its outline (outlines agree {agree:.2f}; {failed.reason})")
+    if params.min_skin is not None and skin() >= params.min_skin:
+        return replace(ver, reason=f"accepted on its skin (the skin beside the seam continues {skin():.2f}; "
+                                   f"{failed.reason})")
     return None
 
 
