@@ -12,6 +12,10 @@ project's own generator, where the pipeline was tuned. Per row:
   part acc        multi-piece objects through `relicgpu.assemble`: `evaluate.score` part
                   accuracy at 1% of the object size
   touch R         recall of the touching pairs among the used matches (multi-piece objects)
+  matches right   multi-piece objects: of the verified matches (used and not), those that
+                  join touching pieces within 2 degrees and 1% of the size of their true
+                  relative pose, "verified right/verified (used right/used)": a wrong match the
+                  assembly did not use cost it nothing, one it used misplaces a piece or more
 
     python scripts/bench_generalize.py --quick                       # a few minutes on 2 cores
     python scripts/bench_generalize.py --seeds 0,1,2 --json gen.json # the full table
@@ -112,11 +116,24 @@ def assembly_case(result, params: Params, backend, workers: int) -> dict:
     touching = [(at[result.fragments[i].name], at[result.fragments[j].name]) for i, j in result.touching
                 if result.fragments[i].name in at and result.fragments[j].name in at]
     used = [(m.a, m.b, np.asarray(m.transform)) for m in asm.matches if m.used]
+    right = [match_right(result, order, m.a, m.b, np.asarray(m.transform), size) for m in asm.matches]
     s = score([result.fragments[k].vertices for k in order], list(asm.poses), list(asm.groups),
               [result.poses[k] for k in order], touching, used, unit=size)
     return {"part_accuracy": s.part_accuracy, "touching_recall": s.pair_recall, "used": s.n_used,
             "touching": s.n_touching, "verified": len(asm.matches), "groups": asm.n_groups,
-            "fragments_assembled": len(asm.names)}
+            "fragments_assembled": len(asm.names), "verified_right": int(sum(right)),
+            "used_right": int(sum(r for r, m in zip(right, asm.matches) if m.used))}
+
+
+def match_right(result, order: list[int], a: int, b: int, transform: np.ndarray, size: float) -> bool:
+    """Whether a match (assembly indices a, b; `transform` carries b onto a) joins touching pieces
+    within 2 degrees and 1% of the size of their true relative pose."""
+    i, j = order[a], order[b]
+    if tuple(sorted((i, j))) not in {tuple(sorted(t)) for t in result.touching}:
+        return False
+    true = invert(result.poses[i]) @ result.poses[j]
+    return (rotation_error_deg(transform, true) < 2
+            and relative_pose_error(result.fragments[j].vertices, transform, result.poses[i], result.poses[j]) / size < 0.01)
 
 
 def run(args) -> dict:
@@ -173,8 +190,9 @@ def run(args) -> dict:
                                    else preset["realdata_assemble"]):
                 case["assembly"] = assembly_case(result, params, backend, args.workers)
                 a = case["assembly"]
-                line += (f", part acc {a['part_accuracy']:.2f}, touching recall {a['touching_recall']:.2f} "
-                         f"({a['used']} used of {a['verified']} verified)")
+                line += (f", part acc {a['part_accuracy']:.2f}, touching recall {a['touching_recall']:.2f}, "
+                         f"right matches {a['verified_right']} of {a['verified']} verified, {a['used_right']} of "
+                         f"{a['used']} used")
         case["time_s"] = time.perf_counter() - t0
         print(f"[{k}/{len(plan)}] {fam} seed {seed}: {line} ({case['time_s']:.1f} s)", file=sys.stderr, flush=True)
         cases.append(case)
@@ -201,6 +219,9 @@ def table_rows(cases: list) -> list[dict]:
             "rotation_error_deg": float(np.median([p["rotation_error_deg"] for p in pairs])) if pairs else None,
             "part_accuracy": float(np.mean([a["part_accuracy"] for a in asm])) if asm else None,
             "touching_recall": float(np.mean([a["touching_recall"] for a in asm])) if asm else None,
+            "verified_right": sum(a.get("verified_right", 0) for a in asm),
+            "verified": sum(a["verified"] for a in asm), "used_right": sum(a.get("used_right", 0) for a in asm),
+            "used": sum(a["used"] for a in asm),
             "multi_objects": len(asm), "time_s": float(sum(c["time_s"] for c in cs))})
     return rows
 
@@ -212,13 +233,15 @@ def args_dry(cases: list) -> bool:
 
 def format_table(rows: list[dict]) -> str:
     f = lambda x, spec=".2f": "-" if x is None else format(x, spec)  # noqa: E731
-    head = "| family | objects | faces/piece | true fracture | seg R | seg P | pairs right | rot err deg | part acc | touch R | time s |"
-    lines = [head, "|" + "---|" * 11]
+    head = "| family | objects | faces/piece | true fracture | seg R | seg P | pairs right | rot err deg | part acc | touch R | matches right | time s |"
+    lines = [head, "|" + "---|" * 12]
     for r in rows:
         pairs = f"{r['pairs_right']}/{r['pairs']}" if r["pairs"] else "-"
+        matches = (f"{r['verified_right']}/{r['verified']} ({r['used_right']}/{r['used']})"
+                   if r.get("multi_objects") and "verified" in r else "-")
         lines.append(f"| {r['family']} | {r['objects']} | {f(r['faces_per_piece'], '.0f')} | {f(r['true_share'])} | "
                      f"{f(r['seg_recall'])} | {f(r['seg_precision'])} | {pairs} | {f(r['rotation_error_deg'], '.1f')} | "
-                     f"{f(r['part_accuracy'])} | {f(r['touching_recall'])} | {r['time_s']:.0f} |")
+                     f"{f(r['part_accuracy'])} | {f(r['touching_recall'])} | {matches} | {r['time_s']:.0f} |")
     return "\n".join(lines)
 
 

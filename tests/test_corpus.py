@@ -125,3 +125,4 @@ def test_bench_quick_runs_on_one_family(tmp_path):
     doc = json.loads(out.read_text())
     (row,) = doc["rows"]
     assert row["pairs"] == 1 and row["multi_objects"] == 1 and 0 <= row["seg_recall"] <= 1
+    assert 0 <= row["verified_right"] <= row["verified"] and 0 <= row["used_right"] <= row["used"] <= row["verified"]

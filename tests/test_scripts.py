@@ -93,6 +93,33 @@ def test_bench_search_facets_name_each_contact():
         assert np.count_nonzero(labels[i] == 1 + j) > 0 and np.count_nonzero(labels[j] == 1 + i) > 0
 
 
+def test_bench_generalize_scores_a_match_against_the_true_relative_pose():
+    """A verified match is right only between touching pieces, within 2 degrees and 1% of the size."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from bench_generalize import match_right
+    from relicgpu.pair.icp import invert
+    from relicgpu.synth import corpus
+
+    result = corpus.generate("voronoi-coarse", 3, 0, 300)
+    size = corpus.object_size(result)
+    i, j = result.touching[0]
+    true = invert(result.poses[i]) @ result.poses[j]
+    order = list(range(len(result.fragments)))
+    assert match_right(result, order, i, j, true, size)
+    assert match_right(result, order[::-1], len(order) - 1 - i, len(order) - 1 - j, true, size)  # by assembly index
+    turn = np.eye(4)
+    c, s = np.cos(np.radians(3)), np.sin(np.radians(3))
+    turn[:2, :2] = [[c, -s], [s, c]]
+    assert not match_right(result, order, i, j, true @ turn, size)
+    shift = np.eye(4)
+    shift[0, 3] = 0.02 * size
+    assert not match_right(result, order, i, j, shift @ true, size)
+    apart = [(p, q) for p in order for q in order if p < q and (p, q) not in result.touching]
+    if apart:
+        p, q = apart[0]
+        assert not match_right(result, order, p, q, invert(result.poses[p]) @ result.poses[q], size)
+
+
 def test_set_reads_params_fields_by_their_type_and_names_a_bad_one():
     """The benchmarks' --set NAME=VALUE (relicgpu.params.parse_assignments)."""
     from relicgpu.params import parse_assignments
