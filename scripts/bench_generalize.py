@@ -21,6 +21,13 @@ project's own generator, where the pipeline was tuned. Per row:
     python scripts/bench_generalize.py --seeds 0,1,2 --json gen.json # the full table
     python scripts/bench_generalize.py --families voronoi-noisy --realdata none --backend warp-cpu
     python scripts/bench_generalize.py --families smooth-clean --realdata none --set patch_turns=36
+    python scripts/bench_generalize.py --families vessel-noisy --realdata none --pieces 8 --every-pair
+
+--every-pair also runs `match_pair` on every pair of pieces of each multi-piece object and prints
+a second table: of the touching pairs, right / near (accepted within 5 degrees and 3% of the
+size, over the bar) / wrong (accepted farther off) / missed; of the pairs that do not touch, the
+accepted ones. A piece of an 8-piece object shares a fifth to a half of its break with one
+neighbour, so these say more than the two-piece pairs.
 
 A progress line per case goes to stderr; --dry builds the cases and checks their labels only.
 """
@@ -86,6 +93,36 @@ def pair_case(result, params: Params, backend) -> dict:
     rms = relative_pose_error(b.vertices, m.transform, result.poses[0], result.poses[1]) / size
     return {"accepted": bool(m.accepted), "rotation_error_deg": rot, "rms": rms, "reason": m.reason,
             "right": bool(m.accepted and rot < 2.0 and rms < 0.01)}
+
+
+def every_pair_case(result, params: Params, backend) -> dict:
+    """match_pair on every pair of pieces (b = the later piece carried onto a): counts of the
+    touching pairs right, near, wrong and missed, and of the other pairs accepted."""
+    from relicgpu.heap.assembly import common_scale
+    from relicgpu.pair.pipeline import match_pair
+    from relicgpu.pair.prepare import prepare
+
+    size = corpus.object_size(result)
+    touching = {tuple(sorted(t)) for t in result.touching}
+    n = len(result.fragments)
+    scale = common_scale(result.fragments, params)  # one scale for all, as `assemble` prepares
+    prepared = [prepare(f, params, backend, scale=scale) for f in result.fragments]
+    counts = dict.fromkeys(("touching", "right", "near", "wrong", "missed", "apart", "apart_accepted"), 0)
+    for i in range(n):
+        for j in range(i + 1, n):
+            m = match_pair(prepared[i], prepared[j], params, backend, scale=scale)
+            if (i, j) not in touching:
+                counts["apart"] += 1
+                counts["apart_accepted"] += int(m.accepted)
+                continue
+            counts["touching"] += 1
+            true = invert(result.poses[i]) @ result.poses[j]
+            rot = rotation_error_deg(m.transform, true)
+            rms = relative_pose_error(result.fragments[j].vertices, m.transform, result.poses[i], result.poses[j]) / size
+            kind = ("missed" if not m.accepted else "right" if rot < 2 and rms < 0.01 else
+                    "near" if rot < 5 and rms < 0.03 else "wrong")
+            counts[kind] += 1
+    return counts
 
 
 def cloud_pair_case(name: str, params: Params, backend) -> dict:
@@ -189,6 +226,8 @@ def run(args) -> dict:
             elif n is not None or (args.realdata_assemble if args.realdata_assemble is not None
                                    else preset["realdata_assemble"]):
                 case["assembly"] = assembly_case(result, params, backend, args.workers)
+                if args.every_pair and n is not None:
+                    case["every_pair"] = every_pair_case(result, params, backend)
                 a = case["assembly"]
                 line += (f", part acc {a['part_accuracy']:.2f}, touching recall {a['touching_recall']:.2f}, "
                          f"right matches {a['verified_right']} of {a['verified']} verified, {a['used_right']} of "
@@ -222,6 +261,8 @@ def table_rows(cases: list) -> list[dict]:
             "verified_right": sum(a.get("verified_right", 0) for a in asm),
             "verified": sum(a["verified"] for a in asm), "used_right": sum(a.get("used_right", 0) for a in asm),
             "used": sum(a["used"] for a in asm),
+            "every_pair": {k: sum(c["every_pair"][k] for c in cs if "every_pair" in c)
+                           for k in next((c["every_pair"] for c in cs if "every_pair" in c), {})},
             "multi_objects": len(asm), "time_s": float(sum(c["time_s"] for c in cs))})
     return rows
 
@@ -242,6 +283,18 @@ def format_table(rows: list[dict]) -> str:
         lines.append(f"| {r['family']} | {r['objects']} | {f(r['faces_per_piece'], '.0f')} | {f(r['true_share'])} | "
                      f"{f(r['seg_recall'])} | {f(r['seg_precision'])} | {pairs} | {f(r['rotation_error_deg'], '.1f')} | "
                      f"{f(r['part_accuracy'])} | {f(r['touching_recall'])} | {matches} | {r['time_s']:.0f} |")
+    return "\n".join(lines)
+
+
+def format_pair_table(rows: list[dict]) -> str:
+    """The --every-pair table: a line per family whose multi-piece objects had every pair matched."""
+    lines = ["| family | touching pairs | right | near | wrong | missed | other pairs | of them accepted |",
+             "|" + "---|" * 8]
+    for r in rows:
+        c = r.get("every_pair")
+        if c:
+            lines.append(f"| {r['family']} | {c['touching']} | {c['right']} | {c['near']} | {c['wrong']} | "
+                         f"{c['missed']} | {c['apart']} | {c['apart_accepted']} |")
     return "\n".join(lines)
 
 
@@ -269,6 +322,8 @@ def main(argv=None) -> int:
                          "finds no fit (none: no second reading; default: Params' own)")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="a Params field for every case (repeatable), e.g. patch_turns=36")
+    ap.add_argument("--every-pair", action="store_true",
+                    help="also match every pair of pieces of each multi-piece object (a second table)")
     ap.add_argument("--dry", action="store_true", help="build the cases and report their labels only")
     ap.add_argument("--json", help="write the rows and every case here")
     args = ap.parse_args(argv)
@@ -278,6 +333,9 @@ def main(argv=None) -> int:
         ap.error(f"--set {err}")
     out = run(args)
     print(format_table(out["rows"]))
+    if args.every_pair:
+        print()
+        print(format_pair_table(out["rows"]))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(out, fh, indent=1)

@@ -118,7 +118,7 @@ def test_real_set_helpers_on_two_boxes_and_a_crumb():
 def test_bench_quick_runs_on_one_family(tmp_path):
     out = tmp_path / "g.json"
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_generalize.py"), "--quick", "--families",
-                           "rough-coarse", "--realdata", "none", "--json", str(out)],
+                           "rough-coarse", "--realdata", "none", "--every-pair", "--json", str(out)],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "| rough-coarse |" in proc.stdout and "[2/2] rough-coarse" in proc.stderr
@@ -126,3 +126,7 @@ def test_bench_quick_runs_on_one_family(tmp_path):
     (row,) = doc["rows"]
     assert row["pairs"] == 1 and row["multi_objects"] == 1 and 0 <= row["seg_recall"] <= 1
     assert 0 <= row["verified_right"] <= row["verified"] and 0 <= row["used_right"] <= row["used"] <= row["verified"]
+    c = row["every_pair"]  # a 5-piece object: ten pairs, each counted once
+    assert c["touching"] + c["apart"] == 10 and c["touching"] == doc["cases"][1]["assembly"]["touching"]
+    assert c["right"] + c["near"] + c["wrong"] + c["missed"] == c["touching"] and 0 <= c["apart_accepted"] <= c["apart"]
+    assert "| rough-coarse | " + str(c["touching"]) + " | " + str(c["right"]) + " |" in proc.stdout
