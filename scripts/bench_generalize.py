@@ -81,6 +81,19 @@ def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(a[:3, :3] @ b[:3, :3].T) - 1) / 2, -1, 1))))
 
 
+def pose_errors(result, i: int, j: int, transform: np.ndarray, size: float) -> tuple[float, float]:
+    """Rotation error (degrees) and vertex RMS (of `size`) of `transform` carrying piece j onto
+    piece i, against their true relative pose."""
+    true = invert(result.poses[i]) @ result.poses[j]
+    rms = relative_pose_error(result.fragments[j].vertices, transform, result.poses[i], result.poses[j])
+    return rotation_error_deg(transform, true), rms / size
+
+
+def is_right(rot: float, rms: float) -> bool:
+    """Within 2 degrees and 1% of the size: the bar for a right match."""
+    return rot < 2.0 and rms < 0.01
+
+
 def pair_case(result, params: Params, backend) -> dict:
     """match_pair on a two-piece object: b = fragment 1 carried onto a = fragment 0."""
     from relicgpu.pair.pipeline import match_pair
@@ -88,11 +101,9 @@ def pair_case(result, params: Params, backend) -> dict:
     size = corpus.object_size(result)
     a, b = result.fragments
     m = match_pair(a, b, params, backend)
-    true = invert(result.poses[0]) @ result.poses[1]
-    rot = rotation_error_deg(m.transform, true)
-    rms = relative_pose_error(b.vertices, m.transform, result.poses[0], result.poses[1]) / size
+    rot, rms = pose_errors(result, 0, 1, m.transform, size)
     return {"accepted": bool(m.accepted), "rotation_error_deg": rot, "rms": rms, "reason": m.reason,
-            "right": bool(m.accepted and rot < 2.0 and rms < 0.01)}
+            "right": bool(m.accepted and is_right(rot, rms))}
 
 
 def every_pair_case(result, params: Params, backend) -> dict:
@@ -116,10 +127,8 @@ def every_pair_case(result, params: Params, backend) -> dict:
                 counts["apart_accepted"] += int(m.accepted)
                 continue
             counts["touching"] += 1
-            true = invert(result.poses[i]) @ result.poses[j]
-            rot = rotation_error_deg(m.transform, true)
-            rms = relative_pose_error(result.fragments[j].vertices, m.transform, result.poses[i], result.poses[j]) / size
-            kind = ("missed" if not m.accepted else "right" if rot < 2 and rms < 0.01 else
+            rot, rms = pose_errors(result, i, j, m.transform, size)
+            kind = ("missed" if not m.accepted else "right" if is_right(rot, rms) else
                     "near" if rot < 5 and rms < 0.03 else "wrong")
             counts[kind] += 1
     return counts
@@ -139,7 +148,7 @@ def cloud_pair_case(name: str, params: Params, backend) -> dict:
     rot = rotation_error_deg(m.transform, true)
     rms = relative_pose_error(b.vertices, m.transform, np.eye(4), true) / size
     return {"accepted": bool(m.accepted), "rotation_error_deg": rot, "rms": rms, "reason": m.reason,
-            "right": bool(m.accepted and rot < 2.0 and rms < 0.01), "points": [len(a.vertices), len(b.vertices)]}
+            "right": bool(m.accepted and is_right(rot, rms)), "points": [len(a.vertices), len(b.vertices)]}
 
 
 def assembly_case(result, params: Params, backend, workers: int) -> dict:
@@ -168,9 +177,7 @@ def match_right(result, order: list[int], a: int, b: int, transform: np.ndarray,
     i, j = order[a], order[b]
     if tuple(sorted((i, j))) not in {tuple(sorted(t)) for t in result.touching}:
         return False
-    true = invert(result.poses[i]) @ result.poses[j]
-    return (rotation_error_deg(transform, true) < 2
-            and relative_pose_error(result.fragments[j].vertices, transform, result.poses[i], result.poses[j]) / size < 0.01)
+    return is_right(*pose_errors(result, i, j, transform, size))
 
 
 def run(args) -> dict:
