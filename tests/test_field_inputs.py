@@ -433,13 +433,19 @@ def test_a_union_too_big_for_memory_is_written_as_separate_shells_and_says_so(mo
     assert notes == [] and merged.is_watertight and np.isclose(merged.volume, 1.5 * _box().volume)
 
 
-def test_a_union_that_does_not_close_as_written_says_so():
-    from relicgpu.heap.outputs import merged_solid
+def test_a_union_whose_sheets_touch_at_an_edge_is_written_closed(monkeypatch):
+    from relicgpu.heap import outputs
 
     box = fragment_from_arrays_quiet("box", _box().vertices, _box().faces)
     corner = np.eye(4)
     corner[:3, 3] = [1, 2, 0]  # the two boxes touch along one edge: four faces meet there, by position
-    v, f, notes = merged_solid([box, box], [np.eye(4), corner])
-    assert len(f) == 24 and not trimesh.Trimesh(v, f).is_watertight
+    v, f, notes = outputs.merged_solid([box, box], [np.eye(4), corner])
+    merged = trimesh.Trimesh(v, f)  # welded by position, as an STL reader does
+    assert notes == [] and len(f) == 24 and merged.is_watertight and np.isclose(merged.volume, 2 * _box().volume)
+    # without the two copies of the edge moved apart the file is not closed, and says so
+    monkeypatch.setattr(outputs, "separate_pinches", lambda vertices, faces: np.array(vertices))
+    v0, f0, notes = outputs.merged_solid([box, box], [np.eye(4), corner])
+    assert np.array_equal(f0, f) and not trimesh.Trimesh(v0, f0).is_watertight
+    assert 0 < np.abs(v - v0).max() < 1e-4  # a hair
     assert len(notes) == 1 and notes[0].startswith("box, box: their union is not closed as merged.stl stores it")
     assert notes[0].endswith("so merged.stl is not watertight there")

@@ -16,6 +16,9 @@ original meshes are never all in memory together. Both files are streamed: assem
 binary chunk goes to a temporary file a fragment at a time (`relicgpu.io.glb.write_glb`), merged.stl is
 written a set of fragments at a time (`write_merged`, numpy facets, no trimesh).
 
+Pieces placed edge to edge leave the union two vertices at one position; one is moved a hair
+(`separate_pinches`), since STL stores positions only and would read the edge as four faces'.
+
 Only fragments whose placed bounding boxes overlap are united (`overlap_sets`); the
 others are written side by side, so merged.stl may hold several separate shells (a note
 says so). A lone mesh goes in without manifold3d: as it is when it bounds a solid
@@ -304,12 +307,54 @@ def _set_parts(meshes: list, notes: list[str], status):
         del solids
         v, f = out.vert_properties[:, :3], out.tri_verts  # float32 as STL stores them; uint32 (write_stl takes either)
         status(f"checking the union of {n} solids")
-        if not is_closed(v, f):  # manifold3d's vertices of one position, or two rounded to one in float32
+        if not is_closed(v, f):
+            v = separate_pinches(v, f)
+        if not is_closed(v, f):
             notes.append(f"{', '.join(g.name for g, _ in meshes)}: their union is not closed as merged.stl stores "
                          "it (float32 corners, welded by position: some edges are not shared by exactly two "
                          "faces once each way), so merged.stl is not watertight there")
         status(f"writing the union of {n} solids")
         yield v, f
+
+
+PINCH_STEP = 1e-6  # x the mesh's extent: how far `separate_pinches` moves a vertex
+
+
+def separate_pinches(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The vertices of a closed mesh with every vertex that shares its position with an earlier
+    one moved a hair (PINCH_STEP of the extent, and at least 64 float32 steps) towards the
+    centres of its own faces.
+
+    A union keeps two vertices at one position where two sheets of its surface touch at an edge
+    or a corner (pieces placed edge to edge); it is closed with its vertex indices, but STL
+    stores only positions, and a reader that welds them sees an edge of four faces. Moving one
+    copy apart keeps the file closed.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float32
+    faces : (F, 3) int
+
+    Returns
+    -------
+    (V, 3) float32, a copy
+    """
+    v = np.array(vertices, np.float32)
+    first, weld, _ = unique_rows(np.ascontiguousarray(v, np.float64).view(np.int64))
+    copies = np.flatnonzero(first[weld] != np.arange(len(v)))
+    if len(copies) == 0:
+        return v
+    f = np.asarray(faces, np.int64)
+    centres = np.repeat(v[f].astype(np.float64).mean(axis=1), 3, axis=0)
+    towards = np.zeros((len(v), 3))
+    np.add.at(towards, f.ravel(), centres)
+    uses = np.bincount(f.ravel(), minlength=len(v))
+    d = towards[copies] / np.maximum(uses[copies], 1)[:, None] - v[copies]
+    d /= np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
+    lo, hi = v.min(axis=0).astype(np.float64), v.max(axis=0).astype(np.float64)
+    step = max(PINCH_STEP * float(np.linalg.norm(hi - lo)), 64 * float(np.finfo(np.float32).eps) * float(np.abs(v).max()))
+    v[copies] += (step * d).astype(np.float32)
+    return v
 
 
 def merged_solid(fragments: list[Fragment], poses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, list[str]]:
