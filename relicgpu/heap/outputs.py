@@ -17,7 +17,7 @@ binary chunk goes to a temporary file a fragment at a time (`relicgpu.io.glb.wri
 written a set of fragments at a time (`write_merged`, numpy facets, no trimesh).
 
 Pieces placed edge to edge leave the union two vertices at one position; one is moved a hair
-(`separate_pinches`), since STL stores positions only and would read the edge as four faces'.
+(`separate_pinches`), since STL stores positions only and would read the edge as one of four faces.
 
 Only fragments whose placed bounding boxes overlap are united (`overlap_sets`); the
 others are written side by side, so merged.stl may hold several separate shells (a note
