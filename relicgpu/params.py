@@ -78,6 +78,8 @@ class Params:
     max_patches: int = 3             # fracture patches per fragment tried face to face ...
     min_patch_share: float = 0.15    # ... if at least this share of the largest patch's area
     patch_turns: int = 12            # turns about the common normal tried per patch pair
+    facet_outline: float = 0.005     # flat facets laid face down whose outlines agree within this
+    facet_starts: int = 3            # ... are verified first, at most this many a pair (`facets`; 0: off)
     screen_points: int = 400         # points per start in the short batched ICP that ranks starts
     screen_iterations: int = 10      # ... for every start
     screen_keep: int = 24            # the best starts then run ...

@@ -29,7 +29,7 @@ MAX_COUNT_ERROR = 0.05
 
 
 def main(argv=None) -> int:
-    from relicgpu.params import SEGMENTATIONS, Params, with_segmentations
+    from relicgpu.params import SEGMENTATIONS, Params, parse_assignments, with_segmentations
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="numpy")
@@ -43,6 +43,8 @@ def main(argv=None) -> int:
                     help="Params.second_segmentation, the reading a pair is matched on again where the first "
                          "finds no fit (none: no second reading; default: Params' own)")
     ap.add_argument("--pairs", type=int, default=len(PAPER), help="only the first N pairs of the table")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="a Params field (repeatable), e.g. facet_outline=0")
     args = ap.parse_args(argv)
 
     from relicgpu import synth
@@ -52,7 +54,7 @@ def main(argv=None) -> int:
     from relicgpu.pair.prepare import prepare
 
     backend = resolve(args.backend)
-    params = with_segmentations(Params(), args.segmentation, args.second_segmentation)
+    params = with_segmentations(Params(), args.segmentation, args.second_segmentation).with_(**parse_assignments(args.set))
     rows = []
     for (va, vb, paper_ms), (shape, seed, faces, swap) in list(zip(PAPER, CASES))[: args.pairs]:
         r = synth.generate(shape, pieces=2, seed=seed, faces=max(200, round(faces * args.size_factor)), noise=0.0005)

@@ -21,6 +21,7 @@ from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVER
                          REGION_RESIDUAL, REGION_TURNS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS, SKIN_RIVALS_ESTIMATED,
                          WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness, majority_samples,
                          verify_clouds)
+from .facets import facet_fits
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .planar import apart, polished_fits
 from .ppf import vote_poses
@@ -480,5 +481,15 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
                                          fine[best_first], be, params.plane_iterations, params.contact_distance * scale,
                                          index_of(pa.sample.fracture), pb.sample.weights(), pa.sample.weights())
         fits = [(polished[i], *candidates[k][2:]) for i, k in enumerate(best_first)]
+    if heads is None and params.facet_starts > 0 and pa.facets and pb.facets:
+        # flat facets whose outlines agree go first: the ranking above scores them by a fracture
+        # sample that a flat cut read as skin lacks (`facets`)
+        laid = [t for _, t in facet_fits(pa.facets, pb.facets, scale, params.facet_outline, params.facet_starts)]
+        if laid:
+            polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
+                                             np.array(laid), be, params.plane_iterations,
+                                             params.contact_distance * scale, index_of(pa.sample.fracture),
+                                             pb.sample.weights(), pa.sample.weights())
+            fits = [(T, -1, -1, np.zeros((0, 2), np.int64)) for T in polished] + fits
     timings["icp+verify"] = time.perf_counter() - t1
     return fits, index_of

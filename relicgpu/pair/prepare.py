@@ -17,6 +17,7 @@ from ..cloud.points import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals
 from .segment import segment
 from ..topology import ring_average
+from .facets import flat_facets
 from .verify import SurfaceSample, sample_spacing, vertex_normals
 
 @dataclass(frozen=True, eq=False)
@@ -42,6 +43,7 @@ class Prepared:
     regions: list = field(default_factory=list)  # clouds: (sample, patch) of each crease-bounded region
     second: "Prepared | None" = None  # meshes: prepared again with Params.second_segmentation
     planes: list = field(default_factory=list)  # clouds: (CutPlane, sample, roughness) of each candidate flat cut
+    facets: list = field(default_factory=list)  # meshes: flat regions between creases (`facets.Facet`), any reading
 
     @property
     def fracture_faces(self) -> np.ndarray:
@@ -91,13 +93,14 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     sample = replace(sample, outline=outline_points(fragment.vertices, fragment.faces, seg, params.outline_radius * scale,
                                                     params.outline_spread, 2 * params.icp_points))
     patches = fracture_patches(fragment, seg, prob)
+    facets = flat_facets(fragment.vertices, fragment.faces, seg, scale) if params.facet_outline > 0 else []
     timings["sample"] = time.perf_counter() - t2
     second, second_params = None, _second_params(params)
     if with_second and second_params is not None:
         second = prepare(fragment, second_params, be, scale)
         timings["second"] = sum(second.timings.values())
     return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, patches, timings,
-                    second=second)
+                    second=second, facets=facets)
 
 
 def _second_params(params: Params) -> Params | None:
