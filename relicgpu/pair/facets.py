@@ -5,9 +5,10 @@ polygon on both pieces. Laid face down on each other, two such facets agree alon
 outline at one turn and one slide only; a facet of skin, or another cut, does not. The point-pair
 votes see a flat facet as one plane, which fixes neither turn nor slide, and the patch starts
 (centres face to face at `patch_turns` turns) rank the turns by the fracture sample, which a flat
-cut read as skin does not hold. Here every flat region between creases of either piece, fracture
-or not, is a facet; each pair of facets of about one area is registered in its plane by its
-outline, and the fits whose outlines agree within `Params.facet_outline` are tried first.
+cut read as skin does not hold. Here every flat region of either piece (faces joined across
+edges flatter than `FLAT_DEG`), fracture or not, is a facet; each pair of facets of about one
+area is registered in its plane by its outline, and the fits whose outlines agree within
+`Params.facet_outline` are tried first.
 """
 from __future__ import annotations
 
@@ -17,12 +18,15 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import contour as contour_mod
-from .regions import crease_regions
+from ..topology import components
 
+FLAT_DEG = 3.0  # a facet's faces meet at edges flatter than this
 MIN_AREA = 0.01  # a facet's area at least this times the scale squared
 MAX_BOW = 0.01  # ... its RMS distance to its plane at most this times the scale
 AREA_RATIO = 0.5  # two facets laid together: the smaller at least this share of the larger
 TURN_STEP_DEG = 2.0
+REACH_SLACK = 3.0  # facets whose outlines' mean distances from their centres differ more than this
+# times the outline bound are not turned (a bound, loose: the sampling of the two outlines differs)
 OUTLINE_STEP = 0.01  # outline points this far apart (times the scale)
 # a fit is ambiguous where the outlines agree at a turn over RIVAL_DEG away within RIVAL_RATIO
 # times its distance, or RIVAL_GAP of the scale more
@@ -33,7 +37,7 @@ RIVAL_GAP = 0.003
 
 @dataclass(frozen=True, eq=False)
 class Facet:
-    """A flat region between creases: its area-weighted centre, unit normal (outward), an in-plane
+    """A flat region: its area-weighted centre, unit normal (outward), an in-plane
     frame (u, w) with u x w = normal, area, and its outline in that frame."""
     centre: np.ndarray  # (3,)
     normal: np.ndarray  # (3,)
@@ -41,6 +45,11 @@ class Facet:
     w: np.ndarray  # (3,)
     area: float
     outline: np.ndarray  # (K, 2) points along the region's boundary loops, in (u, w)
+
+    @property
+    def reach(self) -> float:
+        """The outline's mean distance from the centre (the same at every turn)."""
+        return float(np.mean(np.linalg.norm(self.outline, axis=1)))
 
 
 def _frame(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -60,7 +69,9 @@ def flat_facets(vertices: np.ndarray, faces: np.ndarray, seg, scale: float) -> l
     seg : the mesh's `segment.Segmentation` (normals, areas, topology, edge angles)
     scale : the working length
     """
-    region = crease_regions(seg.normals, seg.areas, seg.topology, seg.edge_angle)
+    # faces joined across edges flatter than FLAT_DEG: a crease region can hold two cuts meeting at
+    # a shallow angle, which no single outline describes
+    region = components(len(faces), seg.topology.edge_faces[seg.edge_angle < FLAT_DEG])
     centres = vertices[faces].mean(axis=1)
     out = []
     for r in np.unique(region):
@@ -100,10 +111,13 @@ def facet_fits(fa: list[Facet], fb: list[Facet], scale: float, max_outline: floa
     turns = np.radians(np.arange(0.0, 360.0, TURN_STEP_DEG))
     rot = np.stack([np.stack([np.cos(turns), -np.sin(turns)], -1), np.stack([np.sin(turns), np.cos(turns)], -1)], 1)
     fits = []
+    reach_b = [Q.reach for Q in fb]
     for P in fa:
-        tree = None
-        for Q in fb:
-            if min(P.area, Q.area) < AREA_RATIO * max(P.area, Q.area):
+        tree, reach = None, P.reach
+        for Q, reach_q in zip(fb, reach_b):
+            # outlines that agree within d lie at mean distances from their centres within about d
+            if (min(P.area, Q.area) < AREA_RATIO * max(P.area, Q.area)
+                    or abs(reach - reach_q) > REACH_SLACK * max_outline * scale):
                 continue
             if tree is None:
                 tree = cKDTree(P.outline)
