@@ -4,7 +4,7 @@ import pytest
 
 from relicgpu.backends import resolve
 from relicgpu.pair.facets import facet_fits, flat_facets
-from relicgpu.pair.icp import apply, rotation_angle_deg
+from relicgpu.pair.icp import apply, axis_rotation, rotation_angle_deg
 from relicgpu.pair.segment import segment
 from relicgpu.params import Params
 
@@ -28,13 +28,9 @@ def _pieces():
 
 def _pose(seed):
     rng = np.random.default_rng(seed)
-    q = rng.normal(size=4)
-    q /= np.linalg.norm(q)
-    w, x, y, z = q
+    axis = rng.normal(size=3)
     T = np.eye(4)
-    T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    T[:3, :3] = axis_rotation(axis / np.linalg.norm(axis), rng.uniform(0.5, 3.0))
     T[:3, 3] = rng.normal(size=3)
     return T
 

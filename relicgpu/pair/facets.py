@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 
 from . import contour as contour_mod
 from ..topology import components
+from .seam import _frame
 
 FLAT_DEG = 3.0  # a facet's faces meet at edges flatter than this
 MIN_AREA = 0.01  # a facet's area at least this times the scale squared
@@ -50,13 +51,6 @@ class Facet:
     def reach(self) -> float:
         """The outline's mean distance from the centre (the same at every turn)."""
         return float(np.mean(np.linalg.norm(self.outline, axis=1)))
-
-
-def _frame(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(n, a)
-    u /= np.linalg.norm(u)
-    return u, np.cross(n, u)
 
 
 def flat_facets(vertices: np.ndarray, faces: np.ndarray, seg, scale: float) -> list[Facet]:

@@ -43,7 +43,7 @@ class Prepared:
     regions: list = field(default_factory=list)  # clouds: (sample, patch) of each crease-bounded region
     second: "Prepared | None" = None  # meshes: prepared again with Params.second_segmentation
     planes: list = field(default_factory=list)  # clouds: (CutPlane, sample, roughness) of each candidate flat cut
-    facets: list = field(default_factory=list)  # meshes: flat regions between creases (`facets.Facet`), any reading
+    facets: list = field(default_factory=list)  # meshes: flat regions (`facets.Facet`), the same in every reading
 
     @property
     def fracture_faces(self) -> np.ndarray:
@@ -52,12 +52,13 @@ class Prepared:
 
 
 def prepare(fragment: Fragment, params: Params | None = None, backend="auto", scale: float | None = None,
-            with_second: bool = False) -> Prepared:
+            with_second: bool = False, facets: list | None = None) -> Prepared:
     """Segment a fragment, extract its fracture contours and their fused features.
 
     with_second: also prepare it on `Params.second_segmentation` (`Prepared.second`), as an
     assembly does once per fragment; `match_pair` prepares it itself, only where the first
-    reading finds no fit, when it is not there."""
+    reading finds no fit, when it is not there.
+    facets: its flat facets where another reading found them (they do not depend on the reading)."""
     params = params or Params()
     be = resolve(backend)
     scale = float(scale or params.unit or fragment.size)
@@ -93,11 +94,12 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     sample = replace(sample, outline=outline_points(fragment.vertices, fragment.faces, seg, params.outline_radius * scale,
                                                     params.outline_spread, 2 * params.icp_points))
     patches = fracture_patches(fragment, seg, prob)
-    facets = flat_facets(fragment.vertices, fragment.faces, seg, scale) if params.facet_outline > 0 else []
+    if facets is None:
+        facets = flat_facets(fragment.vertices, fragment.faces, seg, scale) if params.facet_outline > 0 else []
     timings["sample"] = time.perf_counter() - t2
     second, second_params = None, _second_params(params)
     if with_second and second_params is not None:
-        second = prepare(fragment, second_params, be, scale)
+        second = prepare(fragment, second_params, be, scale, facets=facets)
         timings["second"] = sum(second.timings.values())
     return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, patches, timings,
                     second=second, facets=facets)
@@ -117,7 +119,7 @@ def _second_reading(p: Prepared, params: Params, be, scale: float) -> Prepared |
         return p.second
     if p.fragment is None or len(p.fragment.faces) == 0:
         return None
-    return prepare(p.fragment, _second_params(params), be, scale)
+    return prepare(p.fragment, _second_params(params), be, scale, facets=p.facets)
 
 
 def with_fragment(prepared: Prepared, fragment) -> Prepared:
