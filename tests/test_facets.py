@@ -84,3 +84,25 @@ def test_an_outline_that_agrees_at_a_half_turn_gives_no_fit():
     facets_a, facets_b = _facets(va, fa, 1.0), _facets(vb, fb, 1.0)
     assert any(f.normal @ NORMAL > 0.999 for f in facets_a)
     assert facet_fits(facets_a, facets_b, 1.0, 0.01, 3) == []
+
+
+def test_the_distance_field_is_within_its_bound_of_the_exact_distance():
+    from scipy.spatial import cKDTree
+
+    from relicgpu.pair.facets import Facet, _outline_distance
+
+    rng = np.random.default_rng(0)
+    # a star-shaped outline with a sharp notch (adversarial for a grid: kinks between nodes)
+    t = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    r = 0.3 + 0.1 * np.sin(5 * t) * (t < 5.0)
+    outline = np.c_[r * np.cos(t), r * np.sin(t)]
+    f = Facet(np.zeros(3), np.array([0, 0, 1.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), 0.3, outline, 0.02)
+    h = f.field[2]
+    inside = rng.uniform(-0.35, 0.35, (4000, 2))
+    beyond = rng.uniform(-2.0, 2.0, (4000, 2))
+    exact = cKDTree(outline).query(inside)[0]
+    read = _outline_distance(f, inside[:, 0] + 1j * inside[:, 1])
+    assert np.abs(read - exact).max() <= h / np.sqrt(2) + 1e-6
+    assert np.abs(read - exact).mean() < 0.1 * h  # and far closer on the whole
+    exact = cKDTree(outline).query(beyond)[0]
+    assert np.all(_outline_distance(f, beyond[:, 0] + 1j * beyond[:, 1]) <= exact + h / np.sqrt(2) + 1e-6)

@@ -13,6 +13,7 @@ area is registered in its plane by its outline, and the fits whose outlines agre
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -26,9 +27,11 @@ MIN_AREA = 0.01  # a facet's area at least this times the scale squared
 MAX_BOW = 0.01  # ... its RMS distance to its plane at most this times the scale
 AREA_RATIO = 0.5  # two facets laid together: the smaller at least this share of the larger
 TURN_STEP_DEG = 2.0
+COARSE = 3  # the turns are ranked at every third first, then beside the best
 REACH_SLACK = 3.0  # facets whose outlines' mean distances from their centres differ more than this
 # times the outline bound are not turned (a bound, loose: the sampling of the two outlines differs)
 OUTLINE_STEP = 0.01  # outline points this far apart (times the scale)
+FIELD_CELLS = 4  # the outline's distance field: nodes this many to an outline step
 # a fit is ambiguous where the outlines agree at a turn over RIVAL_DEG away within RIVAL_RATIO
 # times its distance, or RIVAL_GAP of the scale more
 RIVAL_DEG = 10.0
@@ -46,11 +49,32 @@ class Facet:
     w: np.ndarray  # (3,)
     area: float
     outline: np.ndarray  # (K, 2) points along the region's boundary loops, in (u, w)
+    step: float  # the outline's sampling step
+
+    @cached_property
+    def field(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Distances to the outline on a grid around it: (lower corner (2,), (nx, ny) distances,
+        node spacing). Exact at the nodes; read bilinearly between them (`_outline_distance`)."""
+        h = self.step / FIELD_CELLS
+        lo = self.outline.min(axis=0) - 2 * self.step
+        n = np.ceil((self.outline.max(axis=0) + 2 * self.step - lo) / h).astype(int) + 1
+        gx, gy = np.meshgrid(lo[0] + h * np.arange(n[0]), lo[1] + h * np.arange(n[1]), indexing="ij")
+        d = cKDTree(self.outline).query(np.c_[gx.ravel(), gy.ravel()])[0]
+        return lo, d.reshape(n).astype(np.float32), h
+
+    @cached_property
+    def radii(self) -> np.ndarray:
+        """(K,) the outline's distances from the centre, ascending (the same at every turn)."""
+        return np.sort(np.linalg.norm(self.outline, axis=1))
 
     @property
     def reach(self) -> float:
-        """The outline's mean distance from the centre (the same at every turn)."""
-        return float(np.mean(np.linalg.norm(self.outline, axis=1)))
+        """The outline's mean distance from the centre."""
+        return float(self.radii.mean())
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        return cKDTree(self.outline)
 
 
 def flat_facets(vertices: np.ndarray, faces: np.ndarray, seg, scale: float) -> list[Facet]:
@@ -88,8 +112,13 @@ def flat_facets(vertices: np.ndarray, faces: np.ndarray, seg, scale: float) -> l
             continue
         pts = np.vstack(loops) - c
         u, w = _frame(n)
-        out.append(Facet(c, n, u, w, area, np.c_[pts @ u, pts @ w]))
+        out.append(Facet(c, n, u, w, area, np.c_[pts @ u, pts @ w], OUTLINE_STEP * scale))
     return sorted(out, key=lambda f: -f.area)
+
+
+# the last pair's fits: `match_pair` asks again for every reading of the pair and every pick of its
+# samples, and the facets are the same lists in each (`prepare(facets=)`)
+_last: tuple = (None, None, None, None)
 
 
 def facet_fits(fa: list[Facet], fb: list[Facet], scale: float, max_outline: float,
@@ -102,25 +131,37 @@ def facet_fits(fa: list[Facet], fb: list[Facet], scale: float, max_outline: floa
     turn (`RIVAL_DEG`, `RIVAL_RATIO`, `RIVAL_GAP`). The outline distance is the mean of the two
     ways' mean nearest-point distances in the common plane.
     """
+    global _last
+    if _last[0] is fa and _last[1] is fb and _last[2] == (scale, max_outline, keep):
+        return list(_last[3])
     turns = np.radians(np.arange(0.0, 360.0, TURN_STEP_DEG))
-    rot = np.stack([np.stack([np.cos(turns), -np.sin(turns)], -1), np.stack([np.sin(turns), np.cos(turns)], -1)], 1)
+    spin = np.exp(1j * turns)
     fits = []
-    reach_b = [Q.reach for Q in fb]
     for P in fa:
-        tree, reach = None, P.reach
-        for Q, reach_q in zip(fb, reach_b):
-            # outlines that agree within d lie at mean distances from their centres within about d
+        for Q in fb:
+            # outlines that agree within d lie at mean distances from their centres within about
+            # d, and a point's distance to an outline is at least its radius's distance to the
+            # outline's radii: the outline distance at every turn is at least the mean such gap
             if (min(P.area, Q.area) < AREA_RATIO * max(P.area, Q.area)
-                    or abs(reach - reach_q) > REACH_SLACK * max_outline * scale):
+                    or abs(P.reach - Q.reach) > REACH_SLACK * max_outline * scale
+                    or 0.5 * (_radial_gap(P.radii, Q.radii) + _radial_gap(Q.radii, P.radii)) > max_outline * scale):
                 continue
-            if tree is None:
-                tree = cKDTree(P.outline)
             # b's facet laid face down: its frame (u, w, n) becomes (u, -w, -n) in a's plane
-            q = Q.outline * np.array([1.0, -1.0])
-            moved = np.einsum("tij,kj->tki", rot, q)  # (T, K, 2)
-            one_way = tree.query(moved.reshape(-1, 2))[0].reshape(len(turns), -1).mean(axis=1)
+            moved = np.outer(spin, Q.outline[:, 0] - 1j * Q.outline[:, 1])  # (T, K)
+            # b's way, read from a's distance field, at every COARSE-th turn and then at the turns
+            # beside the best few ranks the turns; the best three are measured exactly both ways
+            one_way = np.full(len(turns), np.inf)
+            one_way[::COARSE] = _outline_distance(P, moved[::COARSE]).mean(axis=1)
+            near = (np.argsort(one_way)[:3, None] + np.arange(1 - COARSE, COARSE)) % len(turns)
+            near = np.unique(near[np.isinf(one_way[near])])
+            one_way[near] = _outline_distance(P, moved[near]).mean(axis=1)
             best = np.argsort(one_way)[:3]
-            both = [_both_ways(one_way, moved, P, t) for t in best]
+            # read bilinearly, a field is within h / sqrt(2) of the exact distance (a lower bound
+            # beyond the field): no turn here is within max_outline
+            slack = (P.field[2] + Q.field[2]) / (2 * np.sqrt(2))
+            if _field_both_ways(moved, P, Q, spin, best).min() - slack > max_outline * scale:
+                continue
+            both = [_both_ways(moved, P, t) for t in best]
             k = int(np.argmin(both))
             distance = both[k] / scale
             if distance > max_outline:
@@ -128,7 +169,7 @@ def facet_fits(fa: list[Facet], fb: list[Facet], scale: float, max_outline: floa
             # an outline that agrees as well at another turn (an ellipse, a square) fixes none
             apart = np.abs((turns - turns[best[k]] + np.pi) % (2 * np.pi) - np.pi) > np.radians(RIVAL_DEG)
             rival = int(np.flatnonzero(apart)[np.argmin(one_way[apart])])
-            if _both_ways(one_way, moved, P, rival) / scale < max(RIVAL_RATIO * distance, distance + RIVAL_GAP):
+            if _both_ways(moved, P, rival) / scale < max(RIVAL_RATIO * distance, distance + RIVAL_GAP):
                 continue
             t = turns[best[k]]
             e1 = np.cos(t) * P.u + np.sin(t) * P.w
@@ -139,9 +180,39 @@ def facet_fits(fa: list[Facet], fb: list[Facet], scale: float, max_outline: floa
             transform[:3, 3] = P.centre - rotation @ Q.centre
             fits.append((float(distance), transform))
     fits.sort(key=lambda f: f[0])
+    _last = (fa, fb, (scale, max_outline, keep), fits[:keep])
     return fits[:keep]
 
 
-def _both_ways(one_way: np.ndarray, moved: np.ndarray, P: Facet, t: int) -> float:
-    """The outline distance at turn t, given b's way (T,) at every turn and b's outline moved (T, K, 2)."""
-    return 0.5 * (float(one_way[t]) + float(cKDTree(moved[t]).query(P.outline)[0].mean()))
+def _outline_distance(P: Facet, z: np.ndarray) -> np.ndarray:
+    """Distances from points z (complex, any shape) in P's plane to P's outline: its distance field
+    read bilinearly; beyond the field, a lower bound (the way to the field's edge, which is farther
+    from the outline than that, and the edge's distance less that way)."""
+    lo, d, h = P.field
+    x, y = (z.real - lo[0]) / h, (z.imag - lo[1]) / h
+    cx, cy = np.clip(x, 0, d.shape[0] - 1), np.clip(y, 0, d.shape[1] - 1)
+    ix, iy = np.minimum(cx.astype(int), d.shape[0] - 2), np.minimum(cy.astype(int), d.shape[1] - 2)
+    fx, fy = cx - ix, cy - iy
+    near = ((d[ix, iy] * (1 - fx) + d[ix + 1, iy] * fx) * (1 - fy)
+            + (d[ix, iy + 1] * (1 - fx) + d[ix + 1, iy + 1] * fx) * fy)
+    out = h * np.hypot(x - cx, y - cy)
+    return np.maximum(near - out, out)
+
+
+def _field_both_ways(moved: np.ndarray, P: Facet, Q: Facet, spin: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """`_both_ways` at turns t (m,) read from the two distance fields: a's outline carried into b's
+    frame is conj(p) * spin at the turn's spin, as b's (u, -w) turned by spin lands in a's."""
+    back = np.conj(P.outline[:, 0] + 1j * P.outline[:, 1])[None, :] * spin[t, None]
+    return 0.5 * (_outline_distance(P, moved[t]).mean(axis=1) + _outline_distance(Q, back).mean(axis=1))
+
+
+def _radial_gap(r: np.ndarray, s: np.ndarray) -> float:
+    """The mean over radii r of the distance to the nearest of the ascending radii s."""
+    i = np.clip(np.searchsorted(s, r), 1, len(s) - 1)
+    return float(np.minimum(np.abs(r - s[i - 1]), np.abs(r - s[i])).mean())
+
+
+def _both_ways(moved: np.ndarray, P: Facet, t: int) -> float:
+    """The outline distance at turn t (exact, nearest points both ways), b's outline moved (T, K) complex."""
+    q = np.c_[moved[t].real, moved[t].imag]
+    return 0.5 * (float(P.tree.query(q)[0].mean()) + float(cKDTree(q).query(P.outline)[0].mean()))
