@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
@@ -122,6 +123,51 @@ def test_refused_backend_is_never_used(monkeypatch, capsys):
         with pytest.raises(BackendError, match="refused"):
             backends.resolve("warp-cpu")
         assert capsys.readouterr().err == ""  # one warning per process, not per request
+    finally:
+        backends.fastest_backend.cache_clear()
+
+
+class _SlowFarAway:
+    """The NumPy reference as a grid search would be: instant LCS, nearest neighbours cheap
+    for points near the target and dear for points far from it."""
+
+    name = "numpy-grid"
+    real = np.float64
+
+    def __getattr__(self, attr):
+        return getattr(ref, attr)
+
+    def lcs_lengths(self, *args):
+        from relicgpu.heap.screen import lcs_lengths_bitparallel
+
+        return lcs_lengths_bitparallel(*args)
+
+    def nearest_index(self, target):
+        index = ref.nearest_index(target)
+        outer = np.linalg.norm(np.asarray(target), axis=1).max()
+
+        class Index:
+            def query(self, source):
+                far = int((np.linalg.norm(np.asarray(source), axis=1) > 1.5 * outer).sum())
+                time.sleep(1e-5 * far)  # a far query sweeps most of the grid
+                return index.query(source)
+        return Index()
+
+
+def test_auto_times_what_the_pipeline_does(monkeypatch):
+    """`auto` picks by the pipeline's hot path, nearest neighbours near the surface and far
+    from it: a backend slow on far queries loses to the reference, however fast its LCS."""
+    monkeypatch.setattr(backends, "_loaded", {})
+    monkeypatch.setattr(backends, "_checks", {})
+    real_load = backends._load
+    monkeypatch.setattr(backends, "_load", lambda name: _SlowFarAway() if name == "warp-cpu" else real_load(name))
+    monkeypatch.setattr(backends, "candidate_backends", lambda: ["numpy", "warp-cpu"])
+    monkeypatch.delenv("RELICGPU_BACKEND", raising=False)
+    backends.fastest_backend.cache_clear()
+    try:
+        times = backends.probe_times()
+        assert times["numpy"] < times["warp-cpu"], times
+        assert backends.resolve("auto") is ref
     finally:
         backends.fastest_backend.cache_clear()
 
