@@ -80,6 +80,8 @@ class Params:
     patch_turns: int = 12            # turns about the common normal tried per patch pair
     facet_outline: float = 0.005     # flat facets laid face down whose outlines agree within this
     facet_starts: int = 3            # ... are verified first, at most this many a pair (`facets`; 0: off)
+    grown_outline: float = 0.008     # near-flat facets (rescanned or gently curved cuts) whose outlines
+    # agree within this are verified next, as many (`facets.grown_facets`; 0: off)
     screen_points: int = 400         # points per start in the short batched ICP that ranks starts
     screen_iterations: int = 10      # ... for every start
     screen_keep: int = 24            # the best starts then run ...

@@ -106,3 +106,29 @@ def test_the_distance_field_is_within_its_bound_of_the_exact_distance():
     assert np.abs(read - exact).mean() < 0.1 * h  # and far closer on the whole
     exact = cKDTree(outline).query(beyond)[0]
     assert np.all(_outline_distance(f, beyond[:, 0] + 1j * beyond[:, 1]) <= exact + h / np.sqrt(2) + 1e-6)
+
+
+def test_a_rescanned_flat_cut_is_one_grown_facet():
+    """A Voronoi cut rescanned (noisy samples, a smoothing reconstruction, decimation): its faces
+    meet at a few degrees, so its flat components are parts of it; grown from its largest face it
+    is one facet."""
+    import trimesh
+
+    from relicgpu.pair.facets import grown_facets
+    from relicgpu.synth import corpus
+
+    result = corpus.generate("voronoi-noisy", 2, 0, 3000)
+    for fragment, fracture in zip(result.fragments, result.fracture_faces):
+        mesh = trimesh.Trimesh(fragment.vertices, fragment.faces, process=False)
+        normal = (mesh.face_normals[fracture] * mesh.area_faces[fracture, None]).sum(0)
+        normal /= np.linalg.norm(normal)
+        cut_area = mesh.area_faces[fracture].sum()
+        scale = 1.0
+        seg = segment(fragment.vertices, fragment.faces, Params(), scale, resolve("numpy"))
+        along = np.cos(np.radians(3.0))
+        flat = [f.area / cut_area for f in flat_facets(fragment.vertices, fragment.faces, seg, scale)
+                if f.normal @ normal > along]
+        grown = [f.area / cut_area for f in grown_facets(fragment.vertices, fragment.faces, seg, scale)
+                 if f.normal @ normal > along]
+        assert max(flat, default=0.0) < 0.8, flat
+        assert len(grown) == 1 and grown[0] > 0.9, grown

@@ -9,6 +9,12 @@ cut read as skin does not hold. Here every flat region of either piece (faces jo
 edges flatter than `FLAT_DEG`), fracture or not, is a facet; each pair of facets of about one
 area is registered in its plane by its outline, and the fits whose outlines agree within
 `Params.facet_outline` are tried first.
+
+A rescanned flat cut is flat only to within its noise: its faces meet at a few degrees, so its flat
+components are crumbs, and a gently curved cut has none. `grown_facets` reads such a cut as the
+faces grown from a seed face (largest first) while their normals stay within `GROW_DEG` of the
+seed's and their centres within `GROW_GAP` of its plane; its fits, whose rounded outlines agree
+less closely, are kept within `Params.grown_outline` and tried next.
 """
 from __future__ import annotations
 
@@ -23,6 +29,8 @@ from ..topology import components
 from .seam import _frame
 
 FLAT_DEG = 3.0  # a facet's faces meet at edges flatter than this
+GROW_DEG = 10.0  # a grown facet's faces turn at most this far from its seed face's normal ...
+GROW_GAP = 0.003  # ... and their centres lie within this of its plane (times the scale)
 MIN_AREA = 0.01  # a facet's area at least this times the scale squared
 MAX_BOW = 0.01  # ... its RMS distance to its plane at most this times the scale
 AREA_RATIO = 0.5  # two facets laid together: the smaller at least this share of the larger
@@ -78,7 +86,7 @@ class Facet:
 
 
 def flat_facets(vertices: np.ndarray, faces: np.ndarray, seg, scale: float) -> list[Facet]:
-    """The flat facets of a mesh, largest first.
+    """The flat facets of a mesh (faces joined across edges flatter than `FLAT_DEG`), largest first.
 
     Parameters
     ----------
@@ -87,16 +95,45 @@ def flat_facets(vertices: np.ndarray, faces: np.ndarray, seg, scale: float) -> l
     seg : the mesh's `segment.Segmentation` (normals, areas, topology, edge angles)
     scale : the working length
     """
-    # faces joined across edges flatter than FLAT_DEG: a crease region can hold two cuts meeting at
-    # a shallow angle, which no single outline describes
+    # a crease region can hold two cuts meeting at a shallow angle, which no single outline describes
     region = components(len(faces), seg.topology.edge_faces[seg.edge_angle < FLAT_DEG])
+    return _facets(region, vertices, faces, seg, scale)
+
+
+def grown_facets(vertices: np.ndarray, faces: np.ndarray, seg, scale: float) -> list[Facet]:
+    """The near-flat facets of a mesh, largest first: from each face not yet taken, largest
+    first, the faces reached across edges whose normals lie within `GROW_DEG` of the seed's and
+    whose centres lie within `GROW_GAP` of its plane. Parameters as `flat_facets`."""
     centres = vertices[faces].mean(axis=1)
+    pairs = np.concatenate([seg.topology.edge_faces, seg.topology.edge_faces[:, ::-1]])
+    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
+    starts = np.searchsorted(pairs[:, 0], np.arange(len(faces) + 1))
+    region = np.full(len(faces), -1)
+    turn, gap = np.cos(np.radians(GROW_DEG)), GROW_GAP * scale
+    for seed in np.argsort(-seg.areas, kind="stable"):
+        if region[seed] >= 0:
+            continue
+        region[seed] = seed
+        normal, centre, front = seg.normals[seed], centres[seed], [seed]
+        while front:
+            nbr = np.concatenate([pairs[starts[f]:starts[f + 1], 1] for f in front])
+            nbr = np.unique(nbr[region[nbr] < 0])
+            nbr = nbr[(seg.normals[nbr] @ normal > turn) & (np.abs((centres[nbr] - centre) @ normal) < gap)]
+            region[nbr] = seed
+            front = list(nbr)
+    return _facets(region, vertices, faces, seg, scale)
+
+
+def _facets(region: np.ndarray, vertices: np.ndarray, faces: np.ndarray, seg, scale: float) -> list[Facet]:
+    """The facets of a (F,) labelling of the faces: the regions of at least MIN_AREA that bow at
+    most MAX_BOW, with their outlines, largest first."""
+    centres = vertices[faces].mean(axis=1)
+    labels, region = np.unique(region, return_inverse=True)
+    areas = np.bincount(region, weights=seg.areas, minlength=len(labels))
     out = []
-    for r in np.unique(region):
+    for r in np.flatnonzero(areas >= MIN_AREA * scale ** 2):
         m = region == r
         area = float(seg.areas[m].sum())
-        if area < MIN_AREA * scale ** 2:
-            continue
         c = (centres[m] * seg.areas[m, None]).sum(0) / area
         n = (seg.normals[m] * seg.areas[m, None]).sum(0)
         if np.linalg.norm(n) == 0:
@@ -116,9 +153,9 @@ def flat_facets(vertices: np.ndarray, faces: np.ndarray, seg, scale: float) -> l
     return sorted(out, key=lambda f: -f.area)
 
 
-# the last pair's fits: `match_pair` asks again for every reading of the pair and every pick of its
-# samples, and the facets are the same lists in each (`prepare(facets=)`)
-_last: tuple = (None, None, None, None)
+# the last few fits asked for: `match_pair` asks again for every reading of the pair and every pick
+# of its samples, and the facets are the same lists in each (`prepare(facets=, grown=)`)
+_recent: dict = {}
 
 
 def facet_fits(fa: list[Facet], fb: list[Facet], scale: float, max_outline: float,
@@ -131,9 +168,9 @@ def facet_fits(fa: list[Facet], fb: list[Facet], scale: float, max_outline: floa
     turn (`RIVAL_DEG`, `RIVAL_RATIO`, `RIVAL_GAP`). The outline distance is the mean of the two
     ways' mean nearest-point distances in the common plane.
     """
-    global _last
-    if _last[0] is fa and _last[1] is fb and _last[2] == (scale, max_outline, keep):
-        return list(_last[3])
+    key = (id(fa), id(fb), scale, max_outline, keep)
+    if key in _recent and _recent[key][0] is fa and _recent[key][1] is fb:
+        return list(_recent[key][2])
     turns = np.radians(np.arange(0.0, 360.0, TURN_STEP_DEG))
     spin = np.exp(1j * turns)
     fits = []
@@ -180,7 +217,9 @@ def facet_fits(fa: list[Facet], fb: list[Facet], scale: float, max_outline: floa
             transform[:3, 3] = P.centre - rotation @ Q.centre
             fits.append((float(distance), transform))
     fits.sort(key=lambda f: f[0])
-    _last = (fa, fb, (scale, max_outline, keep), fits[:keep])
+    while len(_recent) >= 4:
+        _recent.pop(next(iter(_recent)))
+    _recent[key] = (fa, fb, fits[:keep])
     return fits[:keep]
 
 

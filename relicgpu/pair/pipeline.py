@@ -481,10 +481,12 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
                                          fine[best_first], be, params.plane_iterations, params.contact_distance * scale,
                                          index_of(pa.sample.fracture), pb.sample.weights(), pa.sample.weights())
         fits = [(polished[i], *candidates[k][2:]) for i, k in enumerate(best_first)]
-    if heads is None and params.facet_starts > 0 and pa.facets and pb.facets:
-        # flat facets whose outlines agree go first: the ranking above scores them by a fracture
-        # sample that a flat cut read as skin lacks (`facets`)
-        laid = [t for _, t in facet_fits(pa.facets, pb.facets, scale, params.facet_outline, params.facet_starts)]
+    if heads is None and params.facet_starts > 0:
+        # facets whose outlines agree go first, flat ones before near-flat ones: the ranking above
+        # scores them by a fracture sample that a flat cut read as skin lacks (`facets`)
+        laid = [t for kind, bound in (("facets", params.facet_outline), ("grown", params.grown_outline))
+                if bound > 0 and getattr(pa, kind) and getattr(pb, kind)
+                for _, t in facet_fits(getattr(pa, kind), getattr(pb, kind), scale, bound, params.facet_starts)]
         if laid:
             polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
                                              np.array(laid), be, params.plane_iterations,

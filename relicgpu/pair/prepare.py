@@ -17,7 +17,7 @@ from ..cloud.points import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals
 from .segment import segment
 from ..topology import ring_average
-from .facets import flat_facets
+from .facets import flat_facets, grown_facets
 from .verify import SurfaceSample, sample_spacing, vertex_normals
 
 @dataclass(frozen=True, eq=False)
@@ -44,6 +44,7 @@ class Prepared:
     second: "Prepared | None" = None  # meshes: prepared again with Params.second_segmentation
     planes: list = field(default_factory=list)  # clouds: (CutPlane, sample, roughness) of each candidate flat cut
     facets: list = field(default_factory=list)  # meshes: flat regions (`facets.Facet`), the same in every reading
+    grown: list = field(default_factory=list)  # meshes: near-flat regions (`facets.grown_facets`), likewise
 
     @property
     def fracture_faces(self) -> np.ndarray:
@@ -52,13 +53,14 @@ class Prepared:
 
 
 def prepare(fragment: Fragment, params: Params | None = None, backend="auto", scale: float | None = None,
-            with_second: bool = False, facets: list | None = None) -> Prepared:
+            with_second: bool = False, facets: list | None = None, grown: list | None = None) -> Prepared:
     """Segment a fragment, extract its fracture contours and their fused features.
 
     with_second: also prepare it on `Params.second_segmentation` (`Prepared.second`), as an
     assembly does once per fragment; `match_pair` prepares it itself, only where the first
     reading finds no fit, when it is not there.
-    facets: its flat facets where another reading found them (they do not depend on the reading)."""
+    facets, grown: its flat and near-flat facets where another reading found them (they do not
+    depend on the reading)."""
     params = params or Params()
     be = resolve(backend)
     scale = float(scale or params.unit or fragment.size)
@@ -96,13 +98,15 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     patches = fracture_patches(fragment, seg, prob)
     if facets is None:
         facets = flat_facets(fragment.vertices, fragment.faces, seg, scale) if params.facet_outline > 0 else []
+    if grown is None:
+        grown = grown_facets(fragment.vertices, fragment.faces, seg, scale) if params.grown_outline > 0 else []
     timings["sample"] = time.perf_counter() - t2
     second, second_params = None, _second_params(params)
     if with_second and second_params is not None:
-        second = prepare(fragment, second_params, be, scale, facets=facets)
+        second = prepare(fragment, second_params, be, scale, facets=facets, grown=grown)
         timings["second"] = sum(second.timings.values())
     return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, patches, timings,
-                    second=second, facets=facets)
+                    second=second, facets=facets, grown=grown)
 
 
 def _second_params(params: Params) -> Params | None:
@@ -119,7 +123,7 @@ def _second_reading(p: Prepared, params: Params, be, scale: float) -> Prepared |
         return p.second
     if p.fragment is None or len(p.fragment.faces) == 0:
         return None
-    return prepare(p.fragment, _second_params(params), be, scale, facets=p.facets)
+    return prepare(p.fragment, _second_params(params), be, scale, facets=p.facets, grown=p.grown)
 
 
 def with_fragment(prepared: Prepared, fragment) -> Prepared:
