@@ -128,8 +128,8 @@ def _facets(region: np.ndarray, vertices: np.ndarray, faces: np.ndarray, seg, sc
     """The facets of a (F,) labelling of the faces: the regions of at least MIN_AREA that bow at
     most MAX_BOW, with their outlines, largest first."""
     centres = vertices[faces].mean(axis=1)
-    labels, region = np.unique(region, return_inverse=True)
-    areas = np.bincount(region, weights=seg.areas, minlength=len(labels))
+    region = np.unique(region, return_inverse=True)[1]
+    areas = np.bincount(region, weights=seg.areas)
     out = []
     for r in np.flatnonzero(areas >= MIN_AREA * scale ** 2):
         m = region == r

@@ -484,9 +484,9 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     if heads is None and params.facet_starts > 0:
         # facets whose outlines agree go first, flat ones before near-flat ones: the ranking above
         # scores them by a fracture sample that a flat cut read as skin lacks (`facets`)
-        laid = [t for kind, bound in (("facets", params.facet_outline), ("grown", params.grown_outline))
-                if bound > 0 and getattr(pa, kind) and getattr(pb, kind)
-                for _, t in facet_fits(getattr(pa, kind), getattr(pb, kind), scale, bound, params.facet_starts)]
+        kinds = ((pa.facets, pb.facets, params.facet_outline), (pa.grown, pb.grown, params.grown_outline))
+        laid = [t for fa, fb, bound in kinds if bound > 0 and fa and fb
+                for _, t in facet_fits(fa, fb, scale, bound, params.facet_starts)]
         if laid:
             polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
                                              np.array(laid), be, params.plane_iterations,
