@@ -131,6 +131,11 @@ class Params:
     # at least min_skin (None: never). Clouds with normals: the crease-region fit whose skin
     # continues most, at least this much, is taken (`pipeline._by_skin`; None: never)
     min_skin: float | None = 0.2
+    # of a mesh pair's fits that pass (or, where none does, that the residual band passes), the
+    # one whose skin beside the seam continues the partner's most, by at least skin_pick and more
+    # than the first's, is taken: a flat or smooth break passes at several turns alike, and only
+    # the right one carries the skin on across the seam (None: the first that passes)
+    skin_pick: float | None = 0.2
     # a mesh fit that passes every check but facing is accepted where its rims meet the
     # partner's creases (`verify.rim_agreement`) by at least facing_rims: a thin wall's narrow
     # band faces over fewer points than its skins touch side by side (None: never)

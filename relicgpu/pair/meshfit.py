@@ -1,7 +1,7 @@
 """Verification of a mesh pair's fit: the checks of `verify` with `Params`' bounds; the residual
 band where a rescanned break's outline or skin speaks for it (`outline_fit`); a thin wall's fit
 that faces too little, taken where its rims meet the partner's creases (`rims_fit`); `band_fit`
-asks the one that a refused fit's reason calls for."""
+asks the one that a refused fit's reason calls for. `skin_pick` chooses among fits that pass alike."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -76,3 +76,24 @@ def band_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, inde
     if failed.reason.startswith("facing"):
         return rims_fit(a, b, transform, be, params, scale, index_of, failed)
     return None
+
+
+def skin_pick(a, b, params: Params, scale: float, passed: list) -> tuple:
+    """Of the fits that passed ((transform, verification, ...) each, best-touching first), the
+    first, or the one whose skin beside the seam continues the partner's most
+    (`seam.skin_continuation`) where that is at least `Params.skin_pick` and more than the
+    first's. A flat break passes at several turns, a smooth one at several slides: only at the
+    right one does the skin run on across the seam (docs/benchmarks.md, "Fits that pass alike:
+    the skin picks")."""
+    first = passed[0]
+    if params.skin_pick is None or len(passed) == 1:
+        return first
+    contact = params.contact_distance * scale
+    skins = [seam.skin_continuation(a, b, fit[0], contact, scale) for fit in passed]
+    k = int(np.argmax(skins))
+    if skins[k] < params.skin_pick or skins[k] <= skins[0]:
+        return first
+    transform, ver, *rest = passed[k]
+    return (transform, replace(ver, reason=f"{ver.reason} (of {len(passed)} fits that pass, the skin beside its "
+                                           f"seam continues most: {skins[k]:.2f}, the first's {skins[0]:.2f})"), *rest)
+

@@ -26,7 +26,7 @@ from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prep
 from .planar import apart, polished_fits
 from .ppf import vote_poses
 from . import seam
-from .meshfit import band_fit, verify_mesh
+from .meshfit import band_fit, skin_pick, verify_mesh
 from .verify import index_cache, rim_agreement
 
 
@@ -366,23 +366,30 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     t_start = time.perf_counter() - timings["prepare"]
     fits, index_of = _candidate_fits(pa, pb, params, be, heads, scale, timings)
     t1 = time.perf_counter()
-    # verify the best-touching fits first; stop at the first accepted
+    # verify the best-touching fits first; clouds stop at the first accepted, meshes verify them all
+    # and `meshfit.skin_pick` chooses among those that pass (where none does: that the band passes)
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
-    best, by_outline = None, None  # by_outline: (transform, verification, ca, cb, pairs) of `meshfit.band_fit`
+    picking = not clouds and params.skin_pick is not None
+    best, passed, banded = None, [], []  # (transform, verification, ca, cb, pairs) each
     for transform, ca, cb, pairs in fits:
         if clouds:  # mutual overlap, facing, interpenetration near the other surface only
             ver = verify_clouds(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
                                 params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale, index_of)
         else:
             ver = verify_mesh(pa.sample, pb.sample, transform, be, params, scale, index_of, params.max_rmse)
-            if by_outline is None and not ver.accepted:
+            if not ver.accepted and not passed and (picking or not banded):
                 outline = band_fit(pa.sample, pb.sample, transform, be, params, scale, index_of, ver)
-                by_outline = None if outline is None else (transform, outline, ca, cb, pairs)
+                if outline is not None:
+                    banded.append((transform, outline, ca, cb, pairs))
         rank = (ver.accepted, ver.overlap - ver.penetration)
         if best is None or rank > best[0]:
             best = (rank, transform, ver, ca, cb, pairs)
         if ver.accepted:
-            break
+            passed.append((transform, ver, ca, cb, pairs))
+            if not picking:
+                break
+    if passed:
+        best = (None, *skin_pick(pa.sample, pb.sample, params, scale, passed))
     timings["icp+verify"] += time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t_start
 
@@ -392,9 +399,9 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
                          reason, timings)
     _, transform, ver, ca, cb, pairs = best
     weight = 1.0
-    if not ver.accepted and by_outline is not None:
-        # no fit passed every check; one passed all but the residual, on its outline
-        transform, ver, ca, cb, pairs = by_outline
+    if not ver.accepted and banded:
+        # no fit passed every check; one passed all but the residual (or facing) in the band
+        transform, ver, ca, cb, pairs = skin_pick(pa.sample, pb.sample, params, scale, banded)
         weight = OUTLINE_SCORE
     score = weight * ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
