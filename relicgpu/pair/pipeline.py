@@ -372,6 +372,8 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     picking = not clouds and params.skin_pick is not None
     best, passed, banded = None, [], []  # (transform, verification, ca, cb, pairs) each
     for transform, ca, cb, pairs in fits:
+        if any(_same_fit(transform, fit[0], scale) for fit in passed):
+            continue  # refined to a fit already passed: it would pass alike
         if clouds:  # mutual overlap, facing, interpenetration near the other surface only
             ver = verify_clouds(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
                                 params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale, index_of)
@@ -406,6 +408,11 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     score = weight * ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
                      pairs, ca, cb, ver.reason, timings)
+
+
+def _same_fit(p: np.ndarray, q: np.ndarray, scale: float) -> bool:
+    """Whether two (4, 4) fits are one: within 0.06 degrees and a thousandth of the scale."""
+    return bool(np.abs(p[:3, :3] - q[:3, :3]).max() < 1e-3 and np.abs(p[:3, 3] - q[:3, 3]).max() < 1e-3 * scale)
 
 
 def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict):
