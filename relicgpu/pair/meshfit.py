@@ -96,4 +96,3 @@ def skin_pick(a, b, params: Params, scale: float, passed: list) -> tuple:
     transform, ver, *rest = passed[k]
     return (transform, replace(ver, reason=f"{ver.reason} (of {len(passed)} fits that pass, the skin beside its "
                                            f"seam continues most: {skins[k]:.2f}, the first's {skins[0]:.2f})"), *rest)
-
