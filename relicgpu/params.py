@@ -136,6 +136,11 @@ class Params:
     # than the first's, is taken: a flat or smooth break passes at several turns alike, and only
     # the right one carries the skin on across the seam (None: the first that passes)
     skin_pick: float | None = 0.2
+    # a fit of two thin walls (both under region_thin_wall) is refused where, of at least
+    # `meshfit.WALL_SKIN_NEAR` free skin points near the partner's, under wall_skin continue its
+    # surface (`seam.skin_points`): a break through a wall leaves both skins running on across the
+    # seam; a wall laid along a wall, or turned across it, leaves them beside the partner's (None: never)
+    wall_skin: float | None = 0.15
     # a mesh fit that passes every check but facing is accepted where its rims meet the
     # partner's creases (`verify.rim_agreement`) by at least facing_rims: a thin wall's narrow
     # band faces over fewer points than its skins touch side by side (None: never)

@@ -198,3 +198,33 @@ def test_of_fits_that_pass_alike_the_skin_picks_the_right_turn():
     rot, rms = _pose_error(picked, a, b, truth)
     assert rot < 2.0 and rms < 0.01 * corpus.object_size(r)
     assert "the skin beside its seam continues most" in picked.reason
+
+
+def test_a_thin_wall_whose_skins_lie_beside_the_partners_is_refused():
+    """Two touching sherds of a coarse vessel of another generator (relicgpu.synth.corpus,
+    vessel-coarse, 8 pieces, seed 14, pieces 4 and 7). Without Params.wall_skin a fit half a turn
+    off passes every check on the second reading: the band of one wall laid on the other's, each
+    skin beside the partner's other skin. A break through a wall leaves the skins running on
+    across the seam; this fit's do not (1 of 31 points), so it is refused, and no other passes."""
+    from relicgpu.backends import resolve
+    from relicgpu.heap.assembly import common_scale
+    from relicgpu.pair.meshfit import verify_mesh
+    from relicgpu.pair.prepare import prepare
+    from relicgpu.pair.verify import index_cache
+    from relicgpu.params import Params
+    from relicgpu.synth import corpus
+
+    r = corpus.generate("vessel-coarse", pieces=8, seed=14, faces=3000)
+    scale = common_scale(r.fragments, Params())
+    a, b = r.fragments[4], r.fragments[7]
+    truth = np.linalg.inv(r.poses[4]) @ r.poses[7]
+    off = match_pair(a, b, Params(wall_skin=None), backend="numpy", scale=scale)
+    assert off.accepted and _pose_error(off, a, b, truth)[0] > 90  # the case the rule is for
+
+    assert not match_pair(a, b, backend="numpy", scale=scale).accepted
+    be = resolve("numpy")
+    hybrid = Params(segmentation="hybrid", second_segmentation=None)
+    pa, pb = (prepare(f, hybrid, be, scale=scale) for f in (a, b))
+    assert max(pa.sample.wall, pb.sample.wall) < Params().region_thin_wall
+    ver = verify_mesh(pa.sample, pb.sample, off.transform, be, Params(), scale, index_cache(be), Params().max_rmse)
+    assert not ver.accepted and "thin wall" in ver.reason

@@ -249,6 +249,19 @@ def test_wall_ends_turn_across_the_walls_axis_and_lips_are_found_among_them():
     assert lips[lip].mean() > 0.85 and not lips[cut].any()  # measured 0.91 (not at the corners) and 0
 
 
+def test_wall_thickness_of_a_skin_without_area_is_none():
+    """A reading that leaves only degenerate faces as skin (a crumb of zero area) has no wall:
+    inf, not an error (the Blender cylinder's shards on the hybrid reading)."""
+    from relicgpu.pair.walls import wall_thickness
+    v, f, cut, lip = _rounded_tube(0)
+    _, normals, areas, _ = _mesh_basics(v, f)
+    centers = v[f].mean(1)
+    assert 0 < wall_thickness(centers, normals, areas, ~cut & ~lip) < 0.1
+    skin = np.zeros(len(f), bool)
+    skin[:3] = True
+    assert wall_thickness(centers, normals, np.where(skin, 0.0, areas), skin) == np.inf
+
+
 def test_a_rounded_lip_is_skin_and_the_cut_fracture():
     """The lip test's tube with its creases rounded by one smoothing step: the crease regions still
     see the cut, but the lips' rims are too soft for their planar-band test (segment_cues.LIP_*);

@@ -14,11 +14,31 @@ from . import seam
 from .verify import rim_agreement, verify
 
 
+# A thin-walled pair's fit is judged on its skin (`Params.wall_skin`) where at least this many free
+# skin points lie near the partner's: on coarse meshes (few vertices to sample) the right fits of
+# corpus vessels had 0-7, wrong ones 10-825 (docs/benchmarks.md, "Thin walls: the skins run on") ...
+WALL_SKIN_NEAR = 20
+# ... and where the fit lays under this share of the smaller break on the partner's. A two-piece
+# vessel's right fit covers all of it, and at the scale of a piece that large the skin's quadrics
+# bend away within their reach (corpus vessel-clean seed 14: 7 of 97 continue); no wrong fit of
+# the corpus vessels' 8-piece objects covered as much.
+WALL_SKIN_WHOLE = 0.9
+
+
 def verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, max_rmse: float):
-    """`verify` of a mesh pair's fit with `params`' checks, the residual bound `max_rmse` (of the scale)."""
-    return verify(a, b, transform, be, params.contact_distance * scale, max_rmse * scale, params.min_overlap,
-                  params.penetration_depth * scale, params.max_penetration, index_of, min_facing=params.min_facing,
-                  max_surface_penetration=params.max_surface_penetration)
+    """`verify` of a mesh pair's fit with `params`' checks, the residual bound `max_rmse` (of the
+    scale), and for two thin walls `wall_skin`'s."""
+    ver = verify(a, b, transform, be, params.contact_distance * scale, max_rmse * scale, params.min_overlap,
+                 params.penetration_depth * scale, params.max_penetration, index_of, min_facing=params.min_facing,
+                 max_surface_penetration=params.max_surface_penetration)
+    if (not ver.accepted or params.wall_skin is None or max(a.wall, b.wall) >= params.region_thin_wall
+            or ver.overlap >= WALL_SKIN_WHOLE):
+        return ver
+    continues, near = seam.skin_points(a, b, transform, params.contact_distance * scale, scale)
+    if near >= WALL_SKIN_NEAR and continues < params.wall_skin * near:
+        return replace(ver, accepted=False, reason=f"the skin beside a thin wall's seam does not continue the "
+                                                   f"partner's ({continues} of {near} points near it)")
+    return ver
 
 
 def outline_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, failed):

@@ -19,6 +19,7 @@ from .segment import segment
 from ..topology import ring_average
 from .facets import flat_facets, grown_facets
 from .verify import SurfaceSample, sample_spacing, vertex_normals
+from .walls import wall_thickness
 
 @dataclass(frozen=True, eq=False)
 class Contour:
@@ -94,7 +95,9 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     sample = _surface_sample(fragment, seg, prob, params.icp_points, params.ppf_normal_radius * scale,
                              params.crease_angle_deg)
     sample = replace(sample, outline=outline_points(fragment.vertices, fragment.faces, seg, params.outline_radius * scale,
-                                                    params.outline_spread, 2 * params.icp_points))
+                                                    params.outline_spread, 2 * params.icp_points),
+                     wall=wall_thickness(fragment.vertices[fragment.faces].mean(1), seg.normals, seg.areas,
+                                         ~seg.fracture_faces))
     patches = fracture_patches(fragment, seg, prob)
     if facets is None:
         facets = flat_facets(fragment.vertices, fragment.faces, seg, scale) if params.facet_outline > 0 else []

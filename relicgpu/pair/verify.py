@@ -43,6 +43,8 @@ class SurfaceSample:
     creases: np.ndarray | None = None  # (K,3) points along the mesh's sharp edges (`rim_agreement`); None: clouds
     outline: np.ndarray | None = None  # (K,3) points where the surface turns at a working length
     # (`prepare.outline_points`); None: clouds
+    wall: float = np.inf  # the wall's thickness relative to the piece's size where it is a shell
+    # (`walls.wall_thickness`), else inf
 
     def weights(self) -> np.ndarray:
         """(P,) weight of each fracture point: `fracture_weight`, or 1 where none was given (clouds)."""

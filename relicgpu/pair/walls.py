@@ -153,8 +153,9 @@ def wall_thickness(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, 
     opposite = (np.einsum("fkd,fd->fk", normals[near], normals[idx]) < -0.7) & (gap > 0)
     depth = np.where(opposite, gap, np.inf).min(1)
     has = np.isfinite(depth) & (depth > 1e-3 * size)
-    if areas[idx][has].sum() < 0.5 * areas[idx].sum():
-        return np.inf
+    total = areas[idx].sum()
+    if total <= 0 or areas[idx][has].sum() < 0.5 * total:
+        return np.inf  # (a skin of zero area, a reading's degenerate faces, is no wall)
     q25, q50, q75 = weighted_quantile(depth[has], areas[idx][has], [0.25, 0.5, 0.75])
     return float(q50) / size if q75 < 2 * q25 else np.inf  # a wall is about as thick everywhere
 
