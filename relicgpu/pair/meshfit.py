@@ -16,7 +16,8 @@ from .verify import rim_agreement, verify
 
 # A thin-walled pair's fit is judged on its skin (`Params.wall_skin`) where at least this many free
 # skin points lie near the partner's: on coarse meshes (few vertices to sample) the right fits of
-# corpus vessels had 0-7, wrong ones 10-825 (docs/benchmarks.md, "Thin walls: the skins run on") ...
+# corpus vessels had 0-16 with next to none continuing, the wrong ones refused 20-497
+# (docs/benchmarks.md, "Thin walls: the skins run on") ...
 WALL_SKIN_NEAR = 20
 # ... and where the fit lays under this share of the smaller break on the partner's. A two-piece
 # vessel's right fit covers all of it, and at the scale of a piece that large the skin's quadrics
