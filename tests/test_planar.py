@@ -51,6 +51,7 @@ def test_the_cut_is_found_with_its_rim_and_a_prism_end_is_not():
     cut = planes[0]
     assert cut.frame[:3, 2] @ NORMAL > 0.999  # outward: away from the piece, towards its partner
     assert abs(cut.frame[:3, 3] @ NORMAL - OFFSET) < spacing
+    assert not planar.is_thin(cut, spacing)  # a solid's cut: its face reaches far from its rim
     # the rim lies on the ellipsoid: x^2 + (y / 0.7)^2 + (z / 0.5)^2 = 1, within a few spacings
     rim = cut.rim_points
     level = np.sqrt(rim[:, 0] ** 2 + (rim[:, 1] / 0.7) ** 2 + (rim[:, 2] / 0.5) ** 2)
@@ -111,3 +112,48 @@ def test_rim_normals_estimated_from_the_points_are_fitted_on_the_skin_alone():
 
     assert error(scanned) < 4.0
     assert error(refitted) < 0.6 * error(rounded), (error(refitted), error(rounded))
+
+
+def _shelf_halves():
+    """A bookshelf of boards 0.04 thick (sides, top, bottom, back and three shelves; 0.8 wide, 0.3
+    deep, 1.0 high) cut by an oblique plane: each half as 2,500 points with outward normals."""
+    import manifold3d
+
+    def board(lo, hi):
+        return manifold3d.Manifold.cube(list(np.subtract(hi, lo))).translate(list(lo))
+
+    w, d, h, t = 0.8, 0.3, 1.0, 0.04
+    solid = board([0, 0, 0], [t, d, h])
+    for lo, hi in (([w - t, 0, 0], [w, d, h]), ([0, 0, 0], [w, d, t]), ([0, 0, h - t], [w, d, h]),
+                   ([0, d - t, 0], [w, d, h]), ([0, 0, 0.3], [w, d, 0.3 + t]), ([0, 0, 0.55], [w, d, 0.55 + t]),
+                   ([0, 0, 0.75], [w, d, 0.75 + t])):
+        solid = solid + board(lo, hi)
+    normal = np.array([0.45, 0.8, 0.4]) / np.linalg.norm([0.45, 0.8, 0.4])
+    offset = float(normal @ [0.42, 0.15, 0.48])
+    halves = []
+    for k, part in enumerate((solid.trim_by_plane(list(-normal), -offset), solid.trim_by_plane(list(normal), offset))):
+        assert len(part.decompose()) == 1
+        m = part.to_mesh()
+        halves.append(_cloud(trimesh.Trimesh(np.asarray(m.vert_properties)[:, :3], np.asarray(m.tri_verts)), 10 + k))
+    return halves
+
+
+def test_a_cut_through_thin_boards_is_matched_on_its_plane():
+    """The cut of a bookshelf is its boards' cross-sections (a few percent of the points). Laid on
+    the partner's, each half lies behind its plane and touches the other only at the seam, where
+    the boards' skin runs on and their cut faces meet the partner's skin edge-on: such a fit is not
+    refused for the share of its contact that faces (about 0.6 here; `planar.is_thin`)."""
+    from relicgpu import match_pair
+    from relicgpu.cloud.points import cloud_fragment
+
+    (pa, na), (pb, nb) = _shelf_halves()
+    spacing = point_spacing(pa)
+    assert planar.is_thin(planar.cut_planes(pa, na, spacing)[0], spacing)
+    turn, shift = _turn([0.6, -0.2, 1.0], 75.0), np.array([1.5, 0.5, -1.0])
+    a = cloud_fragment("a", pa, na)
+    b = cloud_fragment("b", pb @ turn.T + shift, nb @ turn.T)
+    m = match_pair(a, b, Params(), backend="numpy")
+    assert m.accepted and "a flat cut" in m.reason, m.reason
+    assert rotation_angle_deg(m.transform[:3, :3] @ turn) < 2.0
+    placed = b.vertices @ m.transform[:3, :3].T + m.transform[:3, 3]
+    assert np.sqrt(np.mean(np.sum((placed - pb) ** 2, axis=1))) < 0.01 * 1.0

@@ -23,7 +23,7 @@ from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVER
                          verify_clouds)
 from .facets import facet_fits
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
-from .planar import apart, polished_fits
+from .planar import RIM_HIT, apart, is_thin, polished_fits
 from .ppf import vote_poses
 from . import seam
 from .meshfit import band_fit, skin_pick, verify_mesh
@@ -78,6 +78,7 @@ SECOND_READING_SCORE = 0.5
 # a fit accepted on its outline with a residual over max_rmse, or on its rims facing too little
 # (`meshfit.band_fit`), is less sure: the assembly weighs it this much
 OUTLINE_SCORE = 0.5
+PLANE_RESIDUAL_FLOOR = 1e-5  # of the scale: a flat cut scanned without noise has no roughness to bound by
 
 
 def pair_scale(a, b, params: Params) -> float:
@@ -308,9 +309,15 @@ def _match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
     centre = pb.planes[ib][0].frame[:3, 3]
     rival = max([s for s, t, _ in fits[1:] if apart(t, transform, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE * scale, centre)],
                 default=0.0)
-    (_, sa, rough_a), (_, sb, rough_b) = pa.planes[ia], pb.planes[ib]
-    ver = verify_clouds(sa, sb, transform, be, contact, REGION_RESIDUAL * np.hypot(rough_a, rough_b), REGION_OVERLAP,
-                        params.penetration_depth * scale, index_cache(be), min_facing=REGION_FACING)
+    (plane_a, sa, rough_a), (plane_b, sb, rough_b) = pa.planes[ia], pb.planes[ib]
+    # each piece lies behind its plane: a thin cut's fit touches mostly along the seam, where the skin
+    # runs on and the cut face meets the partner's skin edge-on (facing 0.35-0.7 at a bookshelf's true
+    # pose), and its face is a few points wide (two samplings lie up to RIM_HIT spacings apart)
+    thin = is_thin(plane_a, spacing) and is_thin(plane_b, spacing)
+    bound = max(REGION_RESIDUAL * np.hypot(rough_a, rough_b), PLANE_RESIDUAL_FLOOR * scale)
+    ver = verify_clouds(sa, sb, transform, be, max(contact, RIM_HIT * spacing) if thin else contact, bound,
+                        REGION_OVERLAP, params.penetration_depth * scale, index_cache(be),
+                        min_facing=0.0 if thin else REGION_FACING)
     if not ver.accepted:
         return None
     fit = PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap, ver.penetration,

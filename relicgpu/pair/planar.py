@@ -61,6 +61,10 @@ ICP_GATE = 6.0
 RIM_AGREE = 0.9
 RIM_HIT = 1.5
 MIN_RIM_POINTS = 12
+# A thin cut (boards, leaves, a pot's wall cut across): the median of its face's points lies within
+# THIN_CUT spacings of its rim (the corpus's Voronoi cut faces 1.7 and up; a bookshelf's and a
+# plant's 0.6-1.2). Laid on the partner's it touches mostly along the seam (`pipeline._match_planes`).
+THIN_CUT = 1.5
 # The POLISH best fits that differ by DISTINCT_DEG of turn or DISTINCT_SLIDE of shift (shares of
 # the scale) are polished on the skin across the seam (`seam.seam_polish`: a flat face holds
 # nothing in its own plane, the skin beside it does) and scored again.
@@ -173,6 +177,13 @@ def _flipped(plane: CutPlane) -> CutPlane:
     flip = np.array([1.0, -1.0])
     return CutPlane(frame, plane.face * flip, plane.rim * flip, plane.rim_normals * np.array([1.0, -1.0, -1.0]),
                     plane.indices)
+
+
+def is_thin(plane: CutPlane, spacing: float) -> bool:
+    """Whether the median point of the plane's cut face lies within THIN_CUT spacings of its rim."""
+    from scipy.spatial import cKDTree
+
+    return bool(np.median(cKDTree(plane.rim).query(plane.face)[0]) <= THIN_CUT * spacing)
 
 
 def _rotation(theta: float) -> np.ndarray:
