@@ -62,9 +62,10 @@ RIM_AGREE = 0.9
 RIM_HIT = 1.5
 MIN_RIM_POINTS = 12
 # A thin cut (boards, leaves, a pot's wall cut across): the median of its face's points lies within
-# THIN_CUT spacings of its rim (the corpus's Voronoi cut faces 1.7 and up; a bookshelf's and a
-# plant's 0.6-1.2). Laid on the partner's it touches mostly along the seam (`pipeline._match_planes`).
-THIN_CUT = 1.5
+# THIN_CUT spacings of its rim (the corpus's Voronoi cut faces with normals, seeds 0-47: 1.5 and up;
+# cuts across a bookshelf's boards and a plant 0.6-1.2, or 1.6-3.0 where a cut runs along a board).
+# Laid on the partner's it touches mostly along the seam (`pipeline._match_planes`).
+THIN_CUT = 1.3
 # The POLISH best fits that differ by DISTINCT_DEG of turn or DISTINCT_SLIDE of shift (shares of
 # the scale) are polished on the skin across the seam (`seam.seam_polish`: a flat face holds
 # nothing in its own plane, the skin beside it does) and scored again.
