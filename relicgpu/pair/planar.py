@@ -30,7 +30,10 @@ from .icp import apply, invert, rotation_angle_deg
 # A cut plane: at least MIN_PLANE_SHARE of a piece's points within PLANE_SPACINGS point spacings
 # of it with normals within PLANE_DEG of its normal, and at most BEHIND_SHARE of the piece's
 # points more than BEHIND_SPACINGS spacings in front of it (a cut leaves the piece on one side).
+# A thin cut (`is_thin`: a bookshelf's boards 0.02 of its height cut across) holds fewer: at least
+# MIN_THIN_SHARE.
 MIN_PLANE_SHARE = 0.03
+MIN_THIN_SHARE = 0.01
 PLANE_SPACINGS = 1.0
 PLANE_DEG = 12.0
 BEHIND_SHARE = 0.01
@@ -126,8 +129,9 @@ def cut_planes(points: np.ndarray, normals: np.ndarray, spacing: float, estimate
         on = (height < tol) & (along.T > cos) & free[None]
         best = int(np.argmax(on.sum(1)))
         members = np.flatnonzero(on[best])
-        if len(members) < MIN_PLANE_SHARE * n:
+        if len(members) < MIN_THIN_SHARE * n:
             break
+        small = len(members) < MIN_PLANE_SHARE * n
         free[members] = False
         centre = points[members].mean(0)
         _, _, vt = np.linalg.svd(points[members] - centre, full_matrices=False)
@@ -137,7 +141,7 @@ def cut_planes(points: np.ndarray, normals: np.ndarray, spacing: float, estimate
             continue
         members = np.flatnonzero((np.abs(front) < tol) & (normals @ normal > cos))
         plane = _plane(points, normals, members, _frame(normal, points[members].mean(0)), spacing, estimated)
-        if plane is not None:
+        if plane is not None and not (small and not is_thin(plane, spacing)):
             planes.append(plane)
     return planes
 
