@@ -18,9 +18,9 @@ from .lcs import circular_lcs
 from ..params import Params
 from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP, MIN_PICK_SKIN, PICK_SKIN_NEAR,
                          PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS, point_spacing, REGION_FACING, REGION_OVERLAP,
-                         REGION_RESIDUAL, REGION_TURNS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS, SKIN_RIVALS_ESTIMATED,
-                         WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness, majority_samples,
-                         verify_clouds)
+                         REGION_RESIDUAL, REGION_TURNS, RESIDUAL_SPACINGS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS,
+                         SKIN_RIVALS_ESTIMATED, WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness,
+                         majority_samples, verify_clouds)
 from .facets import facet_fits
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .planar import RIM_HIT, apart, is_thin, polished_fits
@@ -291,11 +291,10 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
 
 
 def _match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict) -> PairMatch | None:
-    """Two clouds matched on a flat cut (`planar`): the best of `planar.polished_fits`, where it
-    scores at least `Params.min_plane`, no fit turned more than PLANE_RIVAL_DEG from it or shifted
-    more than PLANE_RIVAL_SLIDE scores PLANE_RIVALS of it, and it verifies as a region fit. A best
-    fit that verifies but has such a rival is a symmetric cut: refused as ambiguous. None where no
-    fit decides (the crease regions are tried)."""
+    """Two clouds matched on a flat or curved cut (`planar`): the best of `planar.polished_fits`, where it scores at
+    least `Params.min_plane`, no fit turned more than PLANE_RIVAL_DEG from it or shifted more than PLANE_RIVAL_SLIDE
+    scores PLANE_RIVALS of it, and it verifies as a region fit. A best fit that verifies but has such a rival is a
+    symmetric cut: refused as ambiguous. None where no fit decides (the crease regions are tried)."""
     if params.min_plane is None or not (pa.planes and pb.planes):
         return None
     t0 = time.perf_counter()
@@ -312,19 +311,22 @@ def _match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
     (plane_a, sa, rough_a), (plane_b, sb, rough_b) = pa.planes[ia], pb.planes[ib]
     # each piece lies behind its plane: a thin cut's fit touches mostly along the seam, where the skin
     # runs on and the cut face meets the partner's skin edge-on (facing 0.35-0.7 at a bookshelf's true
-    # pose), and its face is a few points wide (two samplings lie up to RIM_HIT spacings apart)
+    # pose), and its face is a few points wide (two samplings lie up to RIM_HIT spacings apart, and
+    # its roughness, over strips a point or two wide, tells nothing of theirs)
     thin = is_thin(plane_a, spacing) and is_thin(plane_b, spacing)
-    bound = max(REGION_RESIDUAL * np.hypot(rough_a, rough_b), PLANE_RESIDUAL_FLOOR * scale)
+    bound = max(REGION_RESIDUAL * np.hypot(rough_a, rough_b), PLANE_RESIDUAL_FLOOR * scale,
+                RESIDUAL_SPACINGS * spacing if thin else 0.0)
     ver = verify_clouds(sa, sb, transform, be, max(contact, RIM_HIT * spacing) if thin else contact, bound,
                         REGION_OVERLAP, params.penetration_depth * scale, index_cache(be),
                         min_facing=0.0 if thin else REGION_FACING)
     if not ver.accepted:
         return None
+    cut = "a flat cut" if plane_a.bend is None and plane_b.bend is None else "a curved cut"
     fit = PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap, ver.penetration,
-                    np.zeros((0, 2), np.int64), -1, -1, f"accepted (a flat cut: its rim and face held {score:.2f} by "
+                    np.zeros((0, 2), np.int64), -1, -1, f"accepted ({cut}: its rim and face held {score:.2f} by "
                     f"the partner's, {rival:.2f} at another pose)", timings)
     if rival >= PLANE_RIVALS * score:
-        return replace(fit, accepted=False, score=0.0, reason=f"ambiguous: a flat cut held {score:.2f} by the "
+        return replace(fit, accepted=False, score=0.0, reason=f"ambiguous: {cut} held {score:.2f} by the "
                        f"partner's and {rival:.2f} at another pose")
     return fit
 

@@ -16,6 +16,12 @@ same skin normal, times the share of the cut faces that overlap (`plane_fits`, `
 The rims leave a near-elliptic cut a few degrees loose; the best distinct fits are polished on
 the skin across the seam and scored again (`polished_fits`). `pipeline._match_planes` takes the
 best where no other pose holds nearly as well, and calls the cut ambiguous otherwise.
+
+A curved cut through thin parts (a smooth break through a pot's wall, a stem and leaves; boards)
+is a few strips of points on one smooth surface that no plane holds, and the piece lies behind it
+too. A plane's points are grown into a sheet, a height field over the plane (`_sheet`, kept where
+a crease borders it), and searched as a plane is; each fit is then settled in 3-D (`_settled`),
+as two sheets holding different parts of the cut tilt apart.
 """
 from __future__ import annotations
 
@@ -25,7 +31,7 @@ import numpy as np
 
 from . import seam
 from ..cloud.points import local_pca
-from .icp import apply, invert, rotation_angle_deg
+from .icp import apply, invert, kabsch, rotation_angle_deg
 
 # A cut plane: at least MIN_PLANE_SHARE of a piece's points within PLANE_SPACINGS point spacings
 # of it with normals within PLANE_DEG of its normal, and at most BEHIND_SHARE of the piece's
@@ -39,6 +45,11 @@ PLANE_DEG = 12.0
 BEHIND_SHARE = 0.01
 BEHIND_SPACINGS = 3.0
 MAX_PLANES = 4
+# Of up to CANDIDATE_PLANES planes found (largest first), the curved cuts (`_sheet`) come first: a
+# faceted convex skin (a pot's 48-sided wall) gives many planes the piece lies behind, and a cut
+# through thin parts holds few points. Flat planes keep their order (promoted, a vessel's thin lip
+# laid on the partner's half a turn off: corpus vessel-clean seeds 33 and 39 with normals).
+CANDIDATE_PLANES = 8
 PLANE_SEEDS = 400
 # The rim: skin points within RIM_BAND spacings behind the plane, whose normal is not within
 # RIM_FLAT (cosine) of the plane's (skin parallel to the cut never reaches it), carried along
@@ -75,6 +86,26 @@ THIN_CUT = 1.3
 POLISH = 6
 DISTINCT_DEG = 3.0
 DISTINCT_SLIDE = 0.02
+# A curved cut (a smooth or wavy break through boards, a pot's wall, leaves) leaves a plane only
+# part of its face. The plane's points are grown into a sheet, a height field of degree
+# SHEET_DEGREE over the plane, over SHEET_ROUNDS rounds, each taking the free points within
+# PLANE_SPACINGS of it with normals within PLANE_DEG of its own, up to SHEET_REACH of its extent
+# past its points; the sheet replaces the plane where it holds SHEET_GROWTH times its points and
+# the piece lies behind it (over the sheet's extent). A sheet's coefficients are fitted in
+# coordinates scaled to its extent, each non-constant one held towards 0 by SHEET_RIDGE (a face
+# of a few strips across boards leaves some directions unpinned).
+SHEET_DEGREE = 3
+SHEET_ROUNDS = 4
+SHEET_REACH = 0.25
+SHEET_GROWTH = 1.25
+SHEET_RIDGE = 1e-3
+# ... and where its border is a crease: of the points within SHEET_RING spacings of it, at least
+# SHEET_CREASE turn more than SHEET_CREASE_DEG from the nearest sheet point (a patch of a convex
+# skin, which the piece lies behind too, runs on smoothly: plant and bookshelf clouds cut smooth,
+# seeds 0-3, skin sheets 0.62-0.88, cut sheets 0.90-1.00).
+SHEET_RING = 2.0
+SHEET_CREASE_DEG = 30.0
+SHEET_CREASE = 0.95
 
 
 @dataclass(frozen=True)
@@ -84,9 +115,14 @@ class CutPlane:
     rim: np.ndarray  # (R, 2) the rim in plane coordinates
     rim_normals: np.ndarray  # (R, 3) the skin's unit normals there, in plane coordinates
     indices: np.ndarray  # (K,) the cut face's points among the piece's
+    bend: np.ndarray | None = None  # a curved cut's height over the plane: `height` coefficients
+
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        """(K,) the cut's height over its plane at (K, 2) plane coordinates (0 for a flat cut)."""
+        return np.zeros(len(xy)) if self.bend is None else _design(xy, SHEET_DEGREE) @ self.bend
 
     def _to_piece(self, xy: np.ndarray) -> np.ndarray:
-        return xy @ self.frame[:3, :2].T + self.frame[:3, 3]
+        return xy @ self.frame[:3, :2].T + self.height(xy)[:, None] * self.frame[:3, 2] + self.frame[:3, 3]
 
     @property
     def rim_points(self) -> np.ndarray:
@@ -120,7 +156,7 @@ def cut_planes(points: np.ndarray, normals: np.ndarray, spacing: float, estimate
     free = np.ones(n, bool)
     seeds = np.random.default_rng(0).permutation(n)[:PLANE_SEEDS]
     planes = []
-    while len(planes) < MAX_PLANES:
+    while len(planes) < CANDIDATE_PLANES:
         seeds = seeds[free[seeds]]
         if not len(seeds):
             break
@@ -132,22 +168,107 @@ def cut_planes(points: np.ndarray, normals: np.ndarray, spacing: float, estimate
         if len(members) < MIN_THIN_SHARE * n:
             break
         small = len(members) < MIN_PLANE_SHARE * n
+        was_free = free.copy()
         free[members] = False
-        centre = points[members].mean(0)
-        _, _, vt = np.linalg.svd(points[members] - centre, full_matrices=False)
-        normal = vt[2] * np.sign(vt[2] @ normals[members].mean(0))
-        front = (points - centre) @ normal
-        if np.mean(front > BEHIND_SPACINGS * spacing) > BEHIND_SHARE:
+        frame = _fitted_frame(points, normals, members)
+        front = (points - frame[:3, 3]) @ frame[:3, 2]
+        behind = np.mean(front > BEHIND_SPACINGS * spacing) <= BEHIND_SHARE
+        members = np.flatnonzero((np.abs(front) < tol) & (normals @ frame[:3, 2] > cos))
+        frame, bend = _frame(frame[:3, 2], points[members].mean(0)), None
+        sheet = _sheet(points, normals, was_free, members, frame, spacing)
+        if sheet is not None and len(sheet[0]) >= SHEET_GROWTH * len(members):
+            (members, frame, bend), behind = sheet, True
+            small = len(members) < MIN_PLANE_SHARE * n
+            free[members] = False
+        if not behind:
             continue
-        members = np.flatnonzero((np.abs(front) < tol) & (normals @ normal > cos))
-        plane = _plane(points, normals, members, _frame(normal, points[members].mean(0)), spacing, estimated)
-        if plane is not None and not (small and not is_thin(plane, spacing)):
+        plane = _plane(points, normals, members, frame, spacing, estimated, bend)
+        if plane is not None and (not small or is_thin(plane, spacing)):
             planes.append(plane)
-    return planes
+    return ([p for p in planes if p.bend is not None] + [p for p in planes if p.bend is None])[:MAX_PLANES]
 
 
-def _plane(points, normals, members, frame, spacing, estimated=False) -> CutPlane | None:
+def _fitted_frame(points: np.ndarray, normals: np.ndarray, members: np.ndarray) -> np.ndarray:
+    centre = points[members].mean(0)
+    _, _, vt = np.linalg.svd(points[members] - centre, full_matrices=False)
+    return _frame(vt[2] * np.sign(vt[2] @ normals[members].mean(0)), centre)
+
+
+def _design(xy: np.ndarray, degree: int, d: int | None = None) -> np.ndarray:
+    """(K, T) the monomials x^(e-i) y^i of degree e <= `degree` at (K, 2) xy, or their derivative
+    by x (d = 0) or y (d = 1)."""
+    x, y = xy[:, 0:1], xy[:, 1:2]
+    powers = np.array([(e - i, i) for e in range(degree + 1) for i in range(e + 1)], float)
+    if d is None:
+        return x ** powers[:, 0] * y ** powers[:, 1]
+    lowered = powers.copy()
+    lowered[:, d] = np.maximum(lowered[:, d] - 1, 0)
+    return powers[:, d] * x ** lowered[:, 0] * y ** lowered[:, 1]
+
+
+def _bend(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Coefficients of the height field of degree SHEET_DEGREE through (K, 3) points [xy, z]
+    (ridge-held, fitted on coordinates scaled to their extent)."""
+    unit = max(float(np.abs(xy).max()), 1e-12)
+    design = _design(xy / unit, SHEET_DEGREE)
+    ridge = np.full(design.shape[1], SHEET_RIDGE * len(xy))
+    ridge[0] = 0.0
+    coef = np.linalg.solve(design.T @ design + np.diag(ridge), design.T @ z)
+    degrees = np.array([e for e in range(SHEET_DEGREE + 1) for _ in range(e + 1)])
+    return coef / unit ** degrees
+
+
+def _sheet(points, normals, free, members, frame, spacing):
+    """The plane's `members` (indices) grown into a curved sheet: (members, frame, bend), or None
+    where the piece does not lie behind it or it is too small to fit."""
+    tol, cos = PLANE_SPACINGS * spacing, np.cos(np.radians(PLANE_DEG))
+    terms = (SHEET_DEGREE + 1) * (SHEET_DEGREE + 2) // 2
+    for _ in range(SHEET_ROUNDS):
+        if len(members) < 3 * terms:
+            return None
+        local = (points - frame[:3, 3]) @ frame[:3, :3]
+        bend = _bend(local[members, :2], local[members, 2])
+        lo, hi = local[members, :2].min(0), local[members, :2].max(0)
+        reach = SHEET_REACH * float((hi - lo).max())
+        near = np.all((local[:, :2] > lo - reach) & (local[:, :2] < hi + reach), 1)
+        slope = np.stack([-_design(local[:, :2], SHEET_DEGREE, d) @ bend for d in (0, 1)] + [np.ones(len(local))], 1)
+        along = np.einsum("ij,ij->i", normals @ frame[:3, :3], slope) / np.linalg.norm(slope, axis=1)
+        grown = np.flatnonzero(free & near & (np.abs(local[:, 2] - _design(local[:, :2], SHEET_DEGREE) @ bend) < tol)
+                               & (along > cos))
+        if np.array_equal(grown, members):
+            break
+        members = grown
+    if len(members) < 3 * terms:
+        return None
+    frame = _fitted_frame(points, normals, members)
     local = (points - frame[:3, 3]) @ frame[:3, :3]
+    bend = _bend(local[members, :2], local[members, 2])
+    lo, hi = local[members, :2].min(0), local[members, :2].max(0)
+    over = np.all((local[:, :2] > lo) & (local[:, :2] < hi), 1)
+    front = local[:, 2] - _design(local[:, :2], SHEET_DEGREE) @ bend
+    if np.sum(over & (front > BEHIND_SPACINGS * spacing)) > BEHIND_SHARE * len(points):
+        return None
+    return (members, frame, bend) if _creased(points, normals, members, spacing) else None
+
+
+def _creased(points: np.ndarray, normals: np.ndarray, members: np.ndarray, spacing: float) -> bool:
+    """Whether the points' `members` (indices) are bordered by a crease (SHEET_CREASE)."""
+    from scipy.spatial import cKDTree
+
+    inside = np.zeros(len(points), bool)
+    inside[members] = True
+    distance, nearest = cKDTree(points[members]).query(points[~inside], distance_upper_bound=SHEET_RING * spacing)
+    ring = np.isfinite(distance)
+    if not ring.any():
+        return False
+    turn = np.einsum("ij,ij->i", normals[~inside][ring], normals[members][nearest[ring]])
+    return bool(np.mean(turn < np.cos(np.radians(SHEET_CREASE_DEG))) >= SHEET_CREASE)
+
+
+def _plane(points, normals, members, frame, spacing, estimated=False, bend=None) -> CutPlane | None:
+    local = (points - frame[:3, 3]) @ frame[:3, :3]
+    if bend is not None:  # heights over the sheet
+        local[:, 2] -= _design(local[:, :2], SHEET_DEGREE) @ bend
     local_normals = normals @ frame[:3, :3]
     skin = np.ones(len(points), bool)
     skin[members] = False
@@ -163,7 +284,7 @@ def _plane(points, normals, members, frame, spacing, estimated=False) -> CutPlan
     rim = p[:, :2] + step[:, None] * slope[:, :2]
     if len(rim) < MIN_RIM_POINTS or np.median(np.abs(m[:, 2])) < MIN_TILT:
         return None
-    return CutPlane(frame, local[members, :2], rim, m, members)
+    return CutPlane(frame, local[members, :2], rim, m, members, bend)
 
 
 def _skin_normals(points: np.ndarray, normals: np.ndarray, skin: np.ndarray) -> np.ndarray:
@@ -180,8 +301,11 @@ def _flipped(plane: CutPlane) -> CutPlane:
     frame = plane.frame.copy()
     frame[:3, 1:3] *= -1.0
     flip = np.array([1.0, -1.0])
+    bend = None
+    if plane.bend is not None:  # h'(x, y) = -h(x, -y)
+        bend = -plane.bend * (-1.0) ** np.array([i for e in range(SHEET_DEGREE + 1) for i in range(e + 1)])
     return CutPlane(frame, plane.face * flip, plane.rim * flip, plane.rim_normals * np.array([1.0, -1.0, -1.0]),
-                    plane.indices)
+                    plane.indices, bend)
 
 
 def is_thin(plane: CutPlane, spacing: float) -> bool:
@@ -242,6 +366,7 @@ def plane_fits(a: CutPlane, b: CutPlane, spacing: float) -> list[tuple[float, np
     rim_tree = cKDTree(a.rim)
     trees = (_trees(a), _trees(b))
     hit = RIM_HIT * spacing
+    settle = (cKDTree(target := np.vstack([a.face_points, a.rim_points])), target)
     fits = []
     for start in np.radians(np.arange(0.0, 360.0, RIM_TURN_STEP)):
         rot = _rotation(start)
@@ -259,9 +384,29 @@ def plane_fits(a: CutPlane, b: CutPlane, spacing: float) -> list[tuple[float, np
         local = np.eye(4)
         local[:2, :2], local[:2, 3] = rot, shift
         transform = a.frame @ local @ np.linalg.inv(flipped.frame)
+        if a.bend is not None or b.bend is not None:
+            transform = _settled(b, transform, settle, spacing)
         fits.append((fit_score(a, b, transform, spacing, trees), transform))
     fits.sort(key=lambda f: -f[0])
     return fits
+
+
+def _settled(b: CutPlane, transform: np.ndarray, target, spacing: float) -> np.ndarray:
+    """A fit of a curved cut (b onto a by the (4, 4) transform, found in the planes of the two
+    sheets, which tilt apart where they hold different parts of the cut) settled in 3-D: a
+    point-to-point ICP of b's face and rim onto a's (target: (tree, points)), gated as the rims'."""
+    tree, points = target
+    source = np.vstack([b.face_points, b.rim_points])
+    for gate in np.geomspace(ICP_GATE * spacing, RIM_HIT * spacing, ICP_ROUNDS):
+        moved = apply(transform, source)
+        d, k = tree.query(moved, distance_upper_bound=gate)
+        ok = np.isfinite(d)
+        if ok.sum() < MIN_RIM_POINTS:
+            break
+        s, t = moved[ok], points[k[ok]]
+        step = kabsch(s.mean(0), t.mean(0), (s - s.mean(0)).T @ (t - t.mean(0)))
+        transform = step @ transform
+    return transform
 
 
 def apart(p: np.ndarray, q: np.ndarray, degrees: float, slide: float, centre: np.ndarray) -> bool:
