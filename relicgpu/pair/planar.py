@@ -155,14 +155,15 @@ def cut_planes(points: np.ndarray, normals: np.ndarray, spacing: float, estimate
     tol, cos = PLANE_SPACINGS * spacing, np.cos(np.radians(PLANE_DEG))
     free = np.ones(n, bool)
     seeds = np.random.default_rng(0).permutation(n)[:PLANE_SEEDS]
+    height = np.abs(np.einsum("snk,sk->sn", points[None] - points[seeds, None], normals[seeds]))
+    seed_planes = (height < tol) & ((normals @ normals[seeds].T).T > cos)  # (S, N): each seed's plane
     planes = []
     while len(planes) < CANDIDATE_PLANES:
-        seeds = seeds[free[seeds]]
+        alive = free[seeds]
+        seeds, seed_planes = seeds[alive], seed_planes[alive]
         if not len(seeds):
             break
-        height = np.abs(np.einsum("snk,sk->sn", points[None] - points[seeds, None], normals[seeds]))
-        along = normals @ normals[seeds].T
-        on = (height < tol) & (along.T > cos) & free[None]
+        on = seed_planes & free[None]
         best = int(np.argmax(on.sum(1)))
         members = np.flatnonzero(on[best])
         if len(members) < MIN_THIN_SHARE * n:
@@ -197,13 +198,13 @@ def _fitted_frame(points: np.ndarray, normals: np.ndarray, members: np.ndarray) 
 def _design(xy: np.ndarray, degree: int, d: int | None = None) -> np.ndarray:
     """(K, T) the monomials x^(e-i) y^i of degree e <= `degree` at (K, 2) xy, or their derivative
     by x (d = 0) or y (d = 1)."""
-    x, y = xy[:, 0:1], xy[:, 1:2]
-    powers = np.array([(e - i, i) for e in range(degree + 1) for i in range(e + 1)], float)
+    powers = np.array([(e - i, i) for e in range(degree + 1) for i in range(e + 1)])
+    table = xy[:, None, :] ** np.arange(degree + 1)[None, :, None]  # (K, degree + 1, 2), integer powers
     if d is None:
-        return x ** powers[:, 0] * y ** powers[:, 1]
+        return table[:, powers[:, 0], 0] * table[:, powers[:, 1], 1]
     lowered = powers.copy()
     lowered[:, d] = np.maximum(lowered[:, d] - 1, 0)
-    return powers[:, d] * x ** lowered[:, 0] * y ** lowered[:, 1]
+    return powers[:, d] * table[:, lowered[:, 0], 0] * table[:, lowered[:, 1], 1]
 
 
 def _bend(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -230,11 +231,11 @@ def _sheet(points, normals, free, members, frame, spacing):
         bend = _bend(local[members, :2], local[members, 2])
         lo, hi = local[members, :2].min(0), local[members, :2].max(0)
         reach = SHEET_REACH * float((hi - lo).max())
-        near = np.all((local[:, :2] > lo - reach) & (local[:, :2] < hi + reach), 1)
-        slope = np.stack([-_design(local[:, :2], SHEET_DEGREE, d) @ bend for d in (0, 1)] + [np.ones(len(local))], 1)
-        along = np.einsum("ij,ij->i", normals @ frame[:3, :3], slope) / np.linalg.norm(slope, axis=1)
-        grown = np.flatnonzero(free & near & (np.abs(local[:, 2] - _design(local[:, :2], SHEET_DEGREE) @ bend) < tol)
-                               & (along > cos))
+        near = np.flatnonzero(free & np.all((local[:, :2] > lo - reach) & (local[:, :2] < hi + reach), 1))
+        xy = local[near, :2]
+        slope = np.stack([-_design(xy, SHEET_DEGREE, d) @ bend for d in (0, 1)] + [np.ones(len(near))], 1)
+        along = np.einsum("ij,ij->i", normals[near] @ frame[:3, :3], slope) / np.linalg.norm(slope, axis=1)
+        grown = near[(np.abs(local[near, 2] - _design(xy, SHEET_DEGREE) @ bend) < tol) & (along > cos)]
         if np.array_equal(grown, members):
             break
         members = grown
@@ -244,9 +245,9 @@ def _sheet(points, normals, free, members, frame, spacing):
     local = (points - frame[:3, 3]) @ frame[:3, :3]
     bend = _bend(local[members, :2], local[members, 2])
     lo, hi = local[members, :2].min(0), local[members, :2].max(0)
-    over = np.all((local[:, :2] > lo) & (local[:, :2] < hi), 1)
-    front = local[:, 2] - _design(local[:, :2], SHEET_DEGREE) @ bend
-    if np.sum(over & (front > BEHIND_SPACINGS * spacing)) > BEHIND_SHARE * len(points):
+    over = local[np.all((local[:, :2] > lo) & (local[:, :2] < hi), 1)]
+    front = over[:, 2] - _design(over[:, :2], SHEET_DEGREE) @ bend
+    if np.sum(front > BEHIND_SPACINGS * spacing) > BEHIND_SHARE * len(points):
         return None
     return (members, frame, bend) if _creased(points, normals, members, spacing) else None
 
