@@ -47,8 +47,8 @@ BEHIND_SPACINGS = 3.0
 MAX_PLANES = 4
 # Of up to CANDIDATE_PLANES planes found (largest first), the curved cuts (`_sheet`) come first: a
 # faceted convex skin (a pot's 48-sided wall) gives many planes the piece lies behind, and a cut
-# through thin parts holds few points. Flat planes keep their order (promoted, a vessel's thin lip
-# laid on the partner's half a turn off: corpus vessel-clean seeds 33 and 39 with normals).
+# through thin parts holds few points. Flat planes keep their order (promoted too, a vessel's thin
+# lip was laid on the partner's half a turn off: corpus vessel-clean seeds 33 and 39 with normals).
 CANDIDATE_PLANES = 8
 PLANE_SEEDS = 400
 # The rim: skin points within RIM_BAND spacings behind the plane, whose normal is not within
@@ -208,8 +208,8 @@ def _design(xy: np.ndarray, degree: int, d: int | None = None) -> np.ndarray:
 
 
 def _bend(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Coefficients of the height field of degree SHEET_DEGREE through (K, 3) points [xy, z]
-    (ridge-held, fitted on coordinates scaled to their extent)."""
+    """(T,) coefficients of the height field of degree SHEET_DEGREE through heights (K,) z at
+    (K, 2) xy (ridge-held, fitted on coordinates scaled to their extent)."""
     unit = max(float(np.abs(xy).max()), 1e-12)
     design = _design(xy / unit, SHEET_DEGREE)
     ridge = np.full(design.shape[1], SHEET_RIDGE * len(xy))
