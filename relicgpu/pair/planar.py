@@ -31,7 +31,7 @@ import numpy as np
 
 from . import seam
 from ..cloud.points import local_pca
-from .icp import apply, invert, kabsch, rotation_angle_deg
+from .icp import apply, fit_rigid, invert, rotation_angle_deg
 
 # A cut plane: at least MIN_PLANE_SHARE of a piece's points within PLANE_SPACINGS point spacings
 # of it with normals within PLANE_DEG of its normal, and at most BEHIND_SHARE of the piece's
@@ -106,6 +106,8 @@ SHEET_RIDGE = 1e-3
 SHEET_RING = 2.0
 SHEET_CREASE_DEG = 30.0
 SHEET_CREASE = 0.95
+# the height field's monomials x^i y^j: (T, 2) their exponents (i, j), degree by degree
+_POWERS = np.array([(e - j, j) for e in range(SHEET_DEGREE + 1) for j in range(e + 1)])
 
 
 @dataclass(frozen=True)
@@ -119,7 +121,7 @@ class CutPlane:
 
     def height(self, xy: np.ndarray) -> np.ndarray:
         """(K,) the cut's height over its plane at (K, 2) plane coordinates (0 for a flat cut)."""
-        return np.zeros(len(xy)) if self.bend is None else _design(xy, SHEET_DEGREE) @ self.bend
+        return np.zeros(len(xy)) if self.bend is None else _design(xy) @ self.bend
 
     def _to_piece(self, xy: np.ndarray) -> np.ndarray:
         return xy @ self.frame[:3, :2].T + self.height(xy)[:, None] * self.frame[:3, 2] + self.frame[:3, 3]
@@ -195,35 +197,32 @@ def _fitted_frame(points: np.ndarray, normals: np.ndarray, members: np.ndarray) 
     return _frame(vt[2] * np.sign(vt[2] @ normals[members].mean(0)), centre)
 
 
-def _design(xy: np.ndarray, degree: int, d: int | None = None) -> np.ndarray:
-    """(K, T) the monomials x^(e-i) y^i of degree e <= `degree` at (K, 2) xy, or their derivative
-    by x (d = 0) or y (d = 1)."""
-    powers = np.array([(e - i, i) for e in range(degree + 1) for i in range(e + 1)])
-    table = xy[:, None, :] ** np.arange(degree + 1)[None, :, None]  # (K, degree + 1, 2), integer powers
+def _design(xy: np.ndarray, d: int | None = None) -> np.ndarray:
+    """(K, T) the monomials of `_POWERS` at (K, 2) xy, or their derivative by x (d = 0) or y (d = 1)."""
+    table = xy[:, None, :] ** np.arange(SHEET_DEGREE + 1)[None, :, None]  # (K, degree + 1, 2), integer powers
     if d is None:
-        return table[:, powers[:, 0], 0] * table[:, powers[:, 1], 1]
-    lowered = powers.copy()
+        return table[:, _POWERS[:, 0], 0] * table[:, _POWERS[:, 1], 1]
+    lowered = _POWERS.copy()
     lowered[:, d] = np.maximum(lowered[:, d] - 1, 0)
-    return powers[:, d] * table[:, lowered[:, 0], 0] * table[:, lowered[:, 1], 1]
+    return _POWERS[:, d] * table[:, lowered[:, 0], 0] * table[:, lowered[:, 1], 1]
 
 
 def _bend(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
     """(T,) coefficients of the height field of degree SHEET_DEGREE through heights (K,) z at
     (K, 2) xy (ridge-held, fitted on coordinates scaled to their extent)."""
     unit = max(float(np.abs(xy).max()), 1e-12)
-    design = _design(xy / unit, SHEET_DEGREE)
+    design = _design(xy / unit)
     ridge = np.full(design.shape[1], SHEET_RIDGE * len(xy))
     ridge[0] = 0.0
     coef = np.linalg.solve(design.T @ design + np.diag(ridge), design.T @ z)
-    degrees = np.array([e for e in range(SHEET_DEGREE + 1) for _ in range(e + 1)])
-    return coef / unit ** degrees
+    return coef / unit ** _POWERS.sum(1)
 
 
 def _sheet(points, normals, free, members, frame, spacing):
     """The plane's `members` (indices) grown into a curved sheet: (members, frame, bend), or None
     where the piece does not lie behind it or it is too small to fit."""
     tol, cos = PLANE_SPACINGS * spacing, np.cos(np.radians(PLANE_DEG))
-    terms = (SHEET_DEGREE + 1) * (SHEET_DEGREE + 2) // 2
+    terms = len(_POWERS)
     for _ in range(SHEET_ROUNDS):
         if len(members) < 3 * terms:
             return None
@@ -233,9 +232,9 @@ def _sheet(points, normals, free, members, frame, spacing):
         reach = SHEET_REACH * float((hi - lo).max())
         near = np.flatnonzero(free & np.all((local[:, :2] > lo - reach) & (local[:, :2] < hi + reach), 1))
         xy = local[near, :2]
-        slope = np.stack([-_design(xy, SHEET_DEGREE, d) @ bend for d in (0, 1)] + [np.ones(len(near))], 1)
+        slope = np.stack([-_design(xy, d) @ bend for d in (0, 1)] + [np.ones(len(near))], 1)
         along = np.einsum("ij,ij->i", normals[near] @ frame[:3, :3], slope) / np.linalg.norm(slope, axis=1)
-        grown = near[(np.abs(local[near, 2] - _design(xy, SHEET_DEGREE) @ bend) < tol) & (along > cos)]
+        grown = near[(np.abs(local[near, 2] - _design(xy) @ bend) < tol) & (along > cos)]
         if np.array_equal(grown, members):
             break
         members = grown
@@ -246,7 +245,7 @@ def _sheet(points, normals, free, members, frame, spacing):
     bend = _bend(local[members, :2], local[members, 2])
     lo, hi = local[members, :2].min(0), local[members, :2].max(0)
     over = local[np.all((local[:, :2] > lo) & (local[:, :2] < hi), 1)]
-    front = over[:, 2] - _design(over[:, :2], SHEET_DEGREE) @ bend
+    front = over[:, 2] - _design(over[:, :2]) @ bend
     if np.sum(front > BEHIND_SPACINGS * spacing) > BEHIND_SHARE * len(points):
         return None
     return (members, frame, bend) if _creased(points, normals, members, spacing) else None
@@ -269,7 +268,7 @@ def _creased(points: np.ndarray, normals: np.ndarray, members: np.ndarray, spaci
 def _plane(points, normals, members, frame, spacing, estimated=False, bend=None) -> CutPlane | None:
     local = (points - frame[:3, 3]) @ frame[:3, :3]
     if bend is not None:  # heights over the sheet
-        local[:, 2] -= _design(local[:, :2], SHEET_DEGREE) @ bend
+        local[:, 2] -= _design(local[:, :2]) @ bend
     local_normals = normals @ frame[:3, :3]
     skin = np.ones(len(points), bool)
     skin[members] = False
@@ -304,7 +303,7 @@ def _flipped(plane: CutPlane) -> CutPlane:
     flip = np.array([1.0, -1.0])
     bend = None
     if plane.bend is not None:  # h'(x, y) = -h(x, -y)
-        bend = -plane.bend * (-1.0) ** np.array([i for e in range(SHEET_DEGREE + 1) for i in range(e + 1)])
+        bend = -plane.bend * (-1.0) ** _POWERS[:, 1]
     return CutPlane(frame, plane.face * flip, plane.rim * flip, plane.rim_normals * np.array([1.0, -1.0, -1.0]),
                     plane.indices, bend)
 
@@ -404,9 +403,7 @@ def _settled(b: CutPlane, transform: np.ndarray, target, spacing: float) -> np.n
         ok = np.isfinite(d)
         if ok.sum() < MIN_RIM_POINTS:
             break
-        s, t = moved[ok], points[k[ok]]
-        step = kabsch(s.mean(0), t.mean(0), (s - s.mean(0)).T @ (t - t.mean(0)))
-        transform = step @ transform
+        transform = fit_rigid(moved[ok], points[k[ok]]) @ transform
     return transform
 
 
