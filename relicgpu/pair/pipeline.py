@@ -6,7 +6,7 @@ match_pair: LCS coarse match per contour pair -> RANSAC poses -> ICP -> verify
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 
@@ -20,38 +20,15 @@ from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVER
                          PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS, point_spacing, REGION_FACING, REGION_OVERLAP,
                          REGION_RESIDUAL, REGION_TURNS, RESIDUAL_SPACINGS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS,
                          SKIN_RIVALS_ESTIMATED, WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness,
-                         majority_samples, verify_clouds)
+                         majority_samples, thin_pick, thin_wall_fit, verify_clouds)
 from .facets import facet_fits
 from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
 from .planar import RIM_HIT, apart, is_thin, polished_fits
 from .ppf import vote_poses
+from .result import PairMatch
 from . import seam
 from .meshfit import band_fit, skin_pick, verify_mesh
 from .verify import index_cache, rim_agreement
-
-
-@dataclass(frozen=True, eq=False)
-class PairMatch:
-    transform: np.ndarray  # 4x4 carrying b onto a
-    accepted: bool
-    score: float
-    rmse: float
-    overlap: float
-    penetration: float
-    correspondences: np.ndarray  # (K,2) point indices into contour_a / contour_b
-    contour_a: int
-    contour_b: int
-    reason: str
-    timings: dict = field(default_factory=dict)
-
-    def to_dict(self) -> dict:
-        return {
-            "accepted": bool(self.accepted), "transform": self.transform.tolist(), "score": float(self.score),
-            "rmse": float(self.rmse), "overlap": float(self.overlap), "penetration": float(self.penetration),
-            "contour_a": int(self.contour_a), "contour_b": int(self.contour_b),
-            "correspondences": self.correspondences.tolist(), "reason": self.reason,
-            "timings": {k: round(float(v), 6) for k, v in self.timings.items()},
-        }
 
 
 def _main_patches(patches, params: Params):
@@ -136,6 +113,8 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
             result = _match_regions(pa, pb, params, be, scale, timings, result)
         if not result.accepted:
             result = _match_majority(pa, pb, params, be, scale, timings, result)
+        if not result.accepted:
+            result = _match_thin(pa, pb, params, be, scale, timings, result)
     return _held_by_skin(pa, pb, params, be, scale, result) if clouds and result.accepted else result
 
 
@@ -232,6 +211,24 @@ def _match_majority(pa: Prepared, pb: Prepared, params: Params, be, scale: float
     fit = _skin_continues(ma, mb, params, scale, _match_prepared(ma, mb, params, be, None, scale, dict(timings)))
     why = " (on the rough class of a piece that is mostly break)"
     return replace(fit, reason=fit.reason + why) if fit.accepted else result
+
+
+def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
+                result: PairMatch) -> PairMatch:
+    """Two clouds whose picks are thin walls' bands (`cloudmatch.thin_pick`) matched on them as a thin
+    cut is (`cloudmatch.thin_wall_fit`): result kept where no fit passes."""
+    spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
+    if not all(thin_pick(p.fragment, p.sample, spacing) for p in (pa, pb)):
+        return result
+    t0 = time.perf_counter()
+    fits, index_of = _candidate_fits(pa, pb, params, be, None, scale, dict(timings))
+    found = thin_wall_fit([p.fragment for p in (pa, pb)], [pa.sample, pb.sample], [t for t, *_ in fits], spacing,
+                          params, scale, be, index_of)
+    if found is None:
+        return result
+    (transform, ver, reason), timings = found, {**timings, "seam": time.perf_counter() - t0}
+    return PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap,
+                     ver.penetration, np.zeros((0, 2), np.int64), -1, -1, reason, timings)
 
 
 def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,

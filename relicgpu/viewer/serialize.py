@@ -112,7 +112,7 @@ def match_to_json(a: str, b: str, heads, m) -> dict:
         The two fragments' names.
     heads : sequence of 4 int or None
         The head nodes asked for, [contour_a, point_a, contour_b, point_b].
-    m : relicgpu.pair.pipeline.PairMatch
+    m : relicgpu.pair.result.PairMatch
         The match: `transform` (4, 4), `correspondences` (k, 2), `accepted`, `score`,
         `rmse`, `overlap`, `contour_a`, `contour_b`, `reason`, `timings`.
 
