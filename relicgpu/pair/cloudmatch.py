@@ -391,8 +391,8 @@ def verify_clouds(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, bac
 # normals, seeds 0-23: 1.1-3.0, 2.3 or less on both pieces in 20 of 24 pairs; rough, smooth and
 # Voronoi cuts, seeds 0-11: 0.8-6.5, both under 2.3 in none). Two such bands touch over a strip,
 # the cut meeting the partner's skin edge-on there, as a thin flat cut does (`pipeline._match_planes`):
-# a fit of them is verified without the facing check, with contact counted within RIM_HIT
-# spacings, then polished on the skin across the seam, verified again, and kept where at least
+# a fit of them is polished on the skin across the seam, verified without the facing check, with
+# contact counted within RIM_HIT spacings, and kept where at least
 # THIN_PICK_SKIN of the free skin points near the partner's continue it (vessel-clean seeds 3-22,
 # polished: right fits 0.43-0.87, wrong ones that verify 0.00-0.18; unpolished the right ones
 # drop to 0.08 where the fit is a few degrees off).
@@ -412,24 +412,18 @@ def thin_pick(fragment, sample: SurfaceSample, spacing: float) -> bool:
 
 
 def thin_wall_fit(fragments, samples, fits, spacing: float, params: Params, scale: float, backend, index_of):
-    """The first of `fits` ((4, 4) transforms carrying b onto a) of two thin walls' bands that
-    verifies as a thin cut, polished on the skin across the seam (`seam.seam_polish`), verifies
-    so again and continues the partner's skin (THIN_PICK_SKIN): (transform, Verification, reason)
-    or None. `samples`: the fragments' SurfaceSamples; `spacing`: absolute."""
+    """The first of `fits` ((4, 4) transforms carrying b onto a) of two thin walls' bands that,
+    polished on the skin across the seam (`seam.seam_polish`), verifies as a thin cut and
+    continues the partner's skin (THIN_PICK_SKIN): (transform, Verification, reason) or None.
+    `samples`: the fragments' SurfaceSamples; `spacing`: absolute."""
     a, b = samples
     contact = params.contact_distance * scale
-
-    def check(transform):
-        return verify_clouds(a, b, transform, backend, max(contact, RIM_HIT * spacing), params.max_rmse * scale,
-                             params.min_overlap, params.penetration_depth * scale, index_of, min_facing=0.0)
-
     skins = [cloud_skin(f, s) for f, s in zip(fragments, samples)]
     for transform in fits:
-        if not check(transform).accepted:
-            continue
         polished, held = seam.seam_polish(a.fracture, a.fracture_normals, b.fracture, *skins, transform, contact,
                                           scale, index_of(a.fracture))
-        ver = check(polished)
+        ver = verify_clouds(a, b, polished, backend, max(contact, RIM_HIT * spacing), params.max_rmse * scale,
+                            params.min_overlap, params.penetration_depth * scale, index_of, min_facing=0.0)
         continues, near = seam.skin_points(a, b, polished, contact, scale)
         if ver.accepted and near >= PICK_SKIN_NEAR and continues >= THIN_PICK_SKIN * near:
             return polished, ver, (f"accepted (thin walls' bands: {continues} of {near} skin points near the seam "
