@@ -407,7 +407,7 @@ def test_a_thin_walls_break_is_matched_on_its_bands():
     """A vessel's wall cut through (the corpus's vessel-clean seed 2, with normals): both picks are
     bands a spacing or two wide, whose right fit faces 0.38 (under `MIN_FACING`; refused before)
     and is matched as a thin cut once the skin across its seam holds it and continues on."""
-    from relicgpu.pair.cloudmatch import cloud_sample, point_spacing, thin_pick
+    from relicgpu.pair.cloudmatch import cloud_sample, cloud_skin, point_spacing, thin_pick
 
     frags, truth = _corpus_cloud_pair("vessel-clean", 2, 11)
     result = match_pair(*frags, backend="numpy")
@@ -417,4 +417,4 @@ def test_a_thin_walls_break_is_matched_on_its_bands():
     for f, thin in ((frags[0], True), (solid[0], False)):
         points = np.asarray(f.vertices)
         sample = cloud_sample(points, f.normals, Params(), float(np.ptp(points, 0).max()))
-        assert thin_pick(f, sample, point_spacing(points)) is thin
+        assert thin_pick(cloud_skin(f, sample)[0], sample, point_spacing(points)) is thin

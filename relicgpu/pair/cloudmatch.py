@@ -400,25 +400,23 @@ THIN_PICK = 2.3
 THIN_PICK_SKIN = 0.3
 
 
-def thin_pick(fragment, sample: SurfaceSample, spacing: float) -> bool:
-    """Whether a cloud fragment's fracture sample is a thin wall's band: its median point within
-    THIN_PICK spacings (absolute) of the skin (`cloud_skin`)."""
+def thin_pick(skin: np.ndarray, sample: SurfaceSample, spacing: float) -> bool:
+    """Whether a cloud's fracture sample is a thin wall's band: its median point within THIN_PICK
+    spacings (absolute) of the (K, 3) `skin` points (`cloud_skin`)."""
     from scipy.spatial import cKDTree
 
-    skin, _ = cloud_skin(fragment, sample)
     if not (len(skin) and len(sample.fracture)):
         return False
     return bool(np.median(cKDTree(skin).query(sample.fracture)[0]) <= THIN_PICK * spacing)
 
 
-def thin_wall_fit(fragments, samples, fits, spacing: float, params: Params, scale: float, backend, index_of):
+def thin_wall_fit(skins, samples, fits, spacing: float, params: Params, scale: float, backend, index_of):
     """The first of `fits` ((4, 4) transforms carrying b onto a) of two thin walls' bands that,
     polished on the skin across the seam (`seam.seam_polish`), verifies as a thin cut and
     continues the partner's skin (THIN_PICK_SKIN): (transform, Verification, reason) or None.
-    `samples`: the fragments' SurfaceSamples; `spacing`: absolute."""
+    `skins`: each piece's `cloud_skin`; `samples`: their SurfaceSamples; `spacing`: absolute."""
     a, b = samples
     contact = params.contact_distance * scale
-    skins = [cloud_skin(f, s) for f, s in zip(fragments, samples)]
     for transform in fits:
         polished, held = seam.seam_polish(a.fracture, a.fracture_normals, b.fracture, *skins, transform, contact,
                                           scale, index_of(a.fracture))

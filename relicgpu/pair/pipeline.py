@@ -218,12 +218,12 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
     """Two clouds whose picks are thin walls' bands (`cloudmatch.thin_pick`) matched on them as a thin
     cut is (`cloudmatch.thin_wall_fit`): result kept where no fit passes."""
     spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
-    if not all(thin_pick(p.fragment, p.sample, spacing) for p in (pa, pb)):
+    skins = [cloud_skin(p.fragment, p.sample) for p in (pa, pb)]
+    if not all(thin_pick(skin, p.sample, spacing) for (skin, _), p in zip(skins, (pa, pb))):
         return result
     t0 = time.perf_counter()
     fits, index_of = _candidate_fits(pa, pb, params, be, None, scale, dict(timings))
-    found = thin_wall_fit([p.fragment for p in (pa, pb)], [pa.sample, pb.sample], [t for t, *_ in fits], spacing,
-                          params, scale, be, index_of)
+    found = thin_wall_fit(skins, [pa.sample, pb.sample], [t for t, *_ in fits], spacing, params, scale, be, index_of)
     if found is None:
         return result
     (transform, ver, reason), timings = found, {**timings, "seam": time.perf_counter() - t0}
