@@ -59,7 +59,7 @@ def _frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def seam_surfaces(skin: np.ndarray, skin_normals: np.ndarray, points: np.ndarray, point_normals: np.ndarray,
-                  near: float, reach: float, max_fit: float) -> list[tuple]:
+                  near: float, reach: float, max_fit: float, gate_floor: float = 0.0) -> list[tuple]:
     """Quadric patches of one piece's skin extended to the other's skin points near it.
 
     Parameters
@@ -67,6 +67,7 @@ def seam_surfaces(skin: np.ndarray, skin_normals: np.ndarray, points: np.ndarray
     skin, skin_normals : (N, 3) float, the first piece's skin points and outward unit normals
     points, point_normals : (M, 3) float, the other piece's skin points and normals, in the same frame
     near, reach, max_fit : lengths (see the module's constants)
+    gate_floor : a point this close to the quadric continues it, however tightly the quadric fits
 
     Returns
     -------
@@ -75,7 +76,7 @@ def seam_surfaces(skin: np.ndarray, skin_normals: np.ndarray, points: np.ndarray
     """
     return [(i, centre, axes, coef) for i, centre, axes, coef, fit, off in
             _extensions(skin, skin_normals, points, point_normals, near, reach)[1]
-            if fit <= max_fit and off <= GATE * max(fit, 1e-12)]
+            if fit <= max_fit and off <= max(GATE * max(fit, 1e-12), gate_floor)]
 
 
 def _extensions(skin, skin_normals, points, point_normals, near: float, reach: float) -> tuple[int, list]:
@@ -162,7 +163,7 @@ def _fracture_terms(source, target, target_normals, transform, cutoff, index):
 
 def seam_polish(fracture_a: np.ndarray, fracture_normals_a: np.ndarray, fracture_b: np.ndarray,
                 skin_a: tuple[np.ndarray, np.ndarray], skin_b: tuple[np.ndarray, np.ndarray],
-                transform: np.ndarray, cutoff: float, scale: float, index) -> tuple[np.ndarray, int]:
+                transform: np.ndarray, cutoff: float, scale: float, index, wide_gate: float = 0.0) -> tuple[np.ndarray, int]:
     """The (4, 4) transform carrying b onto a polished on a's fracture planes and on the skin across
     the seam, both ways, and the number of skin points that held it in the last step.
 
@@ -175,16 +176,21 @@ def seam_polish(fracture_a: np.ndarray, fracture_normals_a: np.ndarray, fracture
     cutoff : fracture pairs farther than this are left out
     scale : the pair's scale (NEAR, REACH, MAX_FIT are shares of it)
     index : nearest-neighbour index of fracture_a (`backend.nearest_index`)
+    wide_gate : a skin point within this share of `cutoff` of the other's quadric holds the fit in
+        the first round, half of it in the next, and so on, however tightly the quadric fits (0:
+        only within GATE of its own residual). A start a few degrees off puts a clean skin out of
+        its partner's gate, and the break alone then polishes it further off.
     """
     transform = np.array(transform, np.float64)
     held = 0
-    for _ in range(ROUNDS):
+    for r in range(ROUNDS):
+        floor = wide_gate * cutoff * 0.5 ** r
         moved_skin = apply(transform, skin_b[0]), skin_b[1] @ transform[:3, :3].T
         # a's skin extended to b's points (frame a), and b's to a's (frame b)
-        on_a = seam_surfaces(*skin_a, *moved_skin, NEAR * scale, REACH * scale, MAX_FIT * scale)
+        on_a = seam_surfaces(*skin_a, *moved_skin, NEAR * scale, REACH * scale, MAX_FIT * scale, floor)
         back = invert(transform)
         on_b = seam_surfaces(*skin_b, apply(back, skin_a[0]), skin_a[1] @ back[:3, :3].T,
-                             NEAR * scale, REACH * scale, MAX_FIT * scale)
+                             NEAR * scale, REACH * scale, MAX_FIT * scale, floor)
         for _ in range(STEPS):
             jac_f, res_f, (centre, radius) = _fracture_terms(fracture_b, fracture_a, fracture_normals_a,
                                                              transform, cutoff, index)
