@@ -16,7 +16,7 @@ from .icp import (apply, batched_icp, distinct_poses, facing_poses, invert, rans
 from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params
-from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP, MIN_PICK_SKIN, PICK_SKIN_NEAR,
+from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP,
                          PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS, point_spacing, REGION_FACING, REGION_OVERLAP,
                          REGION_RESIDUAL, REGION_TURNS, RESIDUAL_SPACINGS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS,
                          SKIN_RIVALS_ESTIMATED, WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness,
@@ -28,6 +28,7 @@ from .ppf import vote_poses
 from .result import PairMatch
 from . import seam
 from .meshfit import band_fit, skin_pick, verify_mesh
+from .skinhold import held_by_skin, skin_continues
 from .verify import index_cache, rim_agreement
 
 
@@ -88,7 +89,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     rims = None if heads is not None or clouds else _rims(pa, pb, params, be, scale)
     result = _match_prepared(pa, pb, params, be, heads, scale, timings)
     if clouds and heads is None:
-        result = _skin_continues(pa, pb, params, scale, result)
+        result = skin_continues(pa, pb, params, scale, result)
     if heads is None and _second_params(params) is not None:
         first_rims = rims(result.transform) if result.accepted and rims is not None else None
         if not result.accepted or (first_rims is not None and first_rims <= 0):
@@ -108,57 +109,14 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
                 return replace(second, score=SECOND_READING_SCORE * second.score,
                                reason=f"{second.reason} ({params.second_segmentation} segmentation{why})")
     if not (result.accepted or heads is not None or pa.strict_sample is None or pb.strict_sample is None):
-        result = _skin_continues(pa, pb, params, scale, _match_strict(pa, pb, params, be, scale, timings, result))
+        result = skin_continues(pa, pb, params, scale, _match_strict(pa, pb, params, be, scale, timings, result))
         if not result.accepted:
             result = _match_regions(pa, pb, params, be, scale, timings, result)
         if not result.accepted:
             result = _match_majority(pa, pb, params, be, scale, timings, result)
         if not result.accepted:
             result = _match_thin(pa, pb, params, be, scale, timings, result)
-    return _held_by_skin(pa, pb, params, be, scale, result) if clouds and result.accepted else result
-
-
-def _skin_continues(pa: Prepared, pb: Prepared, params: Params, scale: float, result: PairMatch) -> PairMatch:
-    """An accepted cloud fit of the roughness picks, refused where the skin beside its seam does
-    not continue the partner's (`cloudmatch.MIN_PICK_SKIN`): a face laid on a face with the rims
-    apart passes the picks' bars on a sparse cloud."""
-    if not result.accepted:
-        return result
-    continues, near = seam.skin_points(pa.sample, pb.sample, result.transform, params.contact_distance * scale, scale)
-    if near < PICK_SKIN_NEAR or continues >= MIN_PICK_SKIN * near:
-        return result
-    return replace(result, accepted=False, score=0.0, reason=f"the skin beside its seam does not continue the "
-                   f"partner's ({continues} of {near} points near it, under {MIN_PICK_SKIN:.2f})")
-
-
-def _held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, result: PairMatch) -> PairMatch:
-    """An accepted cloud fit that its break leaves loose (`seam.looseness` under `seam.LOOSE`: a
-    thin board's narrow band) polished on the skin across the seam (`seam.seam_polish`), where
-    the polished fit passes verification too (result: kept otherwise)."""
-    if "seam" in result.timings or not (len(pa.sample.fracture) and len(pb.sample.fracture)):
-        return result  # held by its skin already (`_by_skin`), or found on a pick of its own (`_match_strict`)
-    index_of = index_cache(be)
-    contact = params.contact_distance * scale
-    index = index_of(pa.sample.fracture)
-    loose = seam.looseness(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals, result.transform,
-                           contact, index)
-    if loose >= seam.LOOSE:
-        return result
-    t0 = time.perf_counter()
-    transform, held = seam.seam_polish(pa.sample.fracture, pa.sample.fracture_normals, pb.sample.fracture,
-                                       cloud_skin(pa.fragment, pa.sample), cloud_skin(pb.fragment, pb.sample),
-                                       result.transform, contact, scale, index)
-    timings = {**result.timings, "seam": time.perf_counter() - t0}
-    if not held:
-        return replace(result, timings=timings)
-    ver = verify_clouds(pa.sample, pb.sample, transform, be, contact, params.max_rmse * scale, params.min_overlap,
-                        params.penetration_depth * scale, index_of)
-    if not ver.accepted:
-        return replace(result, timings=timings)
-    # a cloud fit scores its overlap less its interpenetration (no reading or outline weight)
-    return replace(result, transform=transform, score=ver.overlap * (1.0 - ver.penetration), rmse=ver.rmse,
-                   overlap=ver.overlap, penetration=ver.penetration, timings=timings,
-                   reason=f"{result.reason} (loose on its break: the skin across the seam held it, {held} points)")
+    return held_by_skin(pa, pb, params, be, scale, result) if clouds and result.accepted else result
 
 
 def _rims(pa: Prepared, pb: Prepared, params: Params, be, scale: float):
@@ -208,7 +166,7 @@ def _match_majority(pa: Prepared, pb: Prepared, params: Params, be, scale: float
     if found is None:
         return result
     ma, mb = replace(pa, sample=found[0]), replace(pb, sample=found[1])
-    fit = _skin_continues(ma, mb, params, scale, _match_prepared(ma, mb, params, be, None, scale, dict(timings)))
+    fit = skin_continues(ma, mb, params, scale, _match_prepared(ma, mb, params, be, None, scale, dict(timings)))
     why = " (on the rough class of a piece that is mostly break)"
     return replace(fit, reason=fit.reason + why) if fit.accepted else result
 

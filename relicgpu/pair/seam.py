@@ -10,10 +10,11 @@ continues across it, so a fit folded at the seam puts one side's skin off the ot
 near the other's skin is held to the other's surface extrapolated to it (a quadric height field
 over the skin points within `REACH` of the seam, fitted once per round), each term weighed by
 the inverse of its residual variance against the break's, the skin's outliers trimmed (`TRIM`).
-It runs only where the fit is loose (`looseness` under `LOOSE`): where the break pins every
-direction the skin has nothing to add, and a worn or chipped rim could pull the fit. A flat break
-is loose in its own plane, and a cloud's flat-break fit is polished so too (`pipeline._by_skin`,
-on the `free_surface` of both pieces).
+It runs where the fit is loose (`looseness` under `LOOSE`): where the break pins every direction
+the skin has nothing to add, and a worn or chipped rim could pull the fit; elsewhere a cloud
+fit's polish is taken only where its skin then continues the partner's clearly better
+(`skinhold.held_by_skin`). A flat break is loose in its own plane, and a cloud's flat-break fit
+is polished so too (`pipeline._by_skin`, on the `free_surface` of both pieces).
 
 `skin_continuation` asks the same quadrics a question instead: how much of the surface beside
 the seam runs on into the partner's. It needs no segmentation and holds on rescanned breaks,
