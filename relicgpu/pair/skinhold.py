@@ -22,6 +22,7 @@ from .verify import index_cache
 # A fit that its break holds is replaced by its polish on the skin where the share of the free
 # skin points near the seam that continue the partner's rises by at least SKIN_GAIN: bookshelf
 # boards 0.04 cut smooth, seeds 0, 1, 6, 7 (fits slid 1.2-1.8% of the size), 0.10-0.34 -> 0.39-0.81.
+# A loose fit's usual polish gives way to the wide gate's by the same margin.
 SKIN_GAIN = 0.1
 
 
@@ -40,10 +41,11 @@ def skin_continues(pa: Prepared, pb: Prepared, params: Params, scale: float, res
 
 def held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, result: PairMatch) -> PairMatch:
     """An accepted cloud fit polished on the skin across the seam (`seam.seam_polish`), where the
-    polished fit passes verification too: taken as it is polished where the break leaves the fit
-    loose (`seam.looseness` under `seam.LOOSE`: a thin board's narrow band); elsewhere polished with
-    the skin's gate widened at first and not, and the polish whose skin continues the partner's
-    most taken where that beats the fit's own by SKIN_GAIN (result: kept otherwise)."""
+    polished fit passes verification too. Where the break leaves the fit loose (`seam.looseness`
+    under `seam.LOOSE`: a thin board's narrow band) the usual polish is taken, and the polish with
+    the skin's gate widened at first instead where its skin continues the partner's by SKIN_GAIN
+    more; elsewhere, of the two polishes, the one whose skin continues the partner's most, where
+    that beats the fit's own by SKIN_GAIN (result: kept otherwise)."""
     if "seam" in result.timings or not (len(pa.sample.fracture) and len(pb.sample.fracture)):
         return result  # held by its skin already (`_by_skin`), or found on a pick of its own (`_match_strict`)
     index_of = index_cache(be)
@@ -59,14 +61,16 @@ def held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, r
     t0 = time.perf_counter()
     skins = cloud_skin(pa.fragment, pa.sample), cloud_skin(pb.fragment, pb.sample)
     best, bar = None, 0.0 if loose else share(result.transform) + SKIN_GAIN
-    for wide in (0.0,) if loose else (THIN_WIDE_GATE, 0.0):
+    for wide in (0.0, THIN_WIDE_GATE) if loose else (THIN_WIDE_GATE, 0.0):
+        if loose and wide and best is None:
+            break  # a loose fit whose usual polish does not verify is kept as it is
         transform, held = seam.seam_polish(pa.sample.fracture, pa.sample.fracture_normals, pb.sample.fracture,
                                            *skins, result.transform, contact, scale, index, wide)
         ver = verify_clouds(pa.sample, pb.sample, transform, be, contact, params.max_rmse * scale, params.min_overlap,
                             params.penetration_depth * scale, index_of)
-        gain = (1.0 if loose else share(transform)) if ver.accepted else -1.0
+        gain = share(transform) if ver.accepted else -1.0
         if gain >= bar:
-            best, bar = (transform, held, ver), gain
+            best, bar = (transform, held, ver), gain + (SKIN_GAIN if loose else 0.0)
     timings = {**result.timings, "seam": time.perf_counter() - t0}
     if best is None:
         return replace(result, timings=timings) if loose else result
