@@ -60,15 +60,21 @@ def held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, r
 
     t0 = time.perf_counter()
     skins = cloud_skin(pa.fragment, pa.sample), cloud_skin(pb.fragment, pb.sample)
-    best, bar = None, 0.0 if loose else share(result.transform) + SKIN_GAIN
+    best, bar = None, None  # bar: the share a polish must reach, read once one verifies
     for wide in (0.0, THIN_WIDE_GATE) if loose else (THIN_WIDE_GATE, 0.0):
         if loose and wide and best is None:
-            break  # a loose fit whose usual polish does not verify is kept as it is
+            break  # a loose fit whose usual polish does not hold and verify is kept as it is
         transform, held = seam.seam_polish(pa.sample.fracture, pa.sample.fracture_normals, pb.sample.fracture,
                                            *skins, result.transform, contact, scale, index, wide)
+        if not held:
+            continue  # no skin point held it: the break's own polish again
         ver = verify_clouds(pa.sample, pb.sample, transform, be, contact, params.max_rmse * scale, params.min_overlap,
                             params.penetration_depth * scale, index_of)
-        gain = share(transform) if ver.accepted else -1.0
+        if not ver.accepted:
+            continue
+        gain = share(transform)
+        if bar is None:
+            bar = 0.0 if loose else share(result.transform) + SKIN_GAIN
         if gain >= bar:
             best, bar = (transform, held, ver), gain + (SKIN_GAIN if loose else 0.0)
     timings = {**result.timings, "seam": time.perf_counter() - t0}
