@@ -6,10 +6,15 @@
     python scripts/bench_clouds.py --source corpus --pairs 12           # an independent generator
     python scripts/bench_clouds.py --pairs 192 --modes none --workers 16  # a process a pair, 16 at a time
     python scripts/bench_clouds.py --source corpus --set min_skin=None  # Params changed for every pair
+    python scripts/bench_clouds.py --source thin --pairs 108            # bookshelves and a plant, 12 seeds
+    python scripts/bench_clouds.py --source corpus --kinds vessel-clean --pairs 48   # one family, seeds 0-47
 
 Pair k is relicgpu.synth's two-piece {vase, torso, slab}[k % 3] of seed k // 3 (4,000 faces,
-scanner noise 0.05% of the size), or with --source corpus the clean two-piece object of
-relicgpu.synth.corpus family {rough, smooth, voronoi, vessel}-clean [k % 4] of seed k // 4; each piece becomes --points points drawn from its surface
+scanner noise 0.05% of the size); with --source corpus the clean two-piece object of
+relicgpu.synth.corpus family {rough, smooth, voronoi, vessel}-clean [k % 4] of seed k // 4; with
+--source thin relicgpu.synth.thin's family [k % 9] ({shelf02, shelf04, plant} x {flat, smooth,
+rough}) of seed k // 9. --kinds keeps some of the source's kinds (pair k is then kinds[k % len] of
+seed k // len). Each piece becomes --points points drawn from its surface
 (seed 100 k + i) with Gaussian noise of --noise times the piece's size, with the true normals
 (`normals`), with none (`none`), or as the mesh itself with three holes cut into its skin
 (`open`). A pair is right when `match_pair` accepts it with a rotation error under 2 degrees and
@@ -35,22 +40,43 @@ SHAPES = ("vase", "torso", "slab")
 CORPUS = ("rough-clean", "smooth-clean", "voronoi-clean", "vessel-clean")
 
 
-def pair_name(k: int, source: str) -> str:
-    return f"{SHAPES[k % 3]} seed {k // 3}" if source == "synth" else f"{CORPUS[k % 4]} seed {k // 4}"
+def source_kinds(source: str, kinds: str = "") -> tuple[str, ...]:
+    """The shapes or families that pairs cycle through: all of `source`'s, or those of the comma list `kinds`."""
+    from relicgpu.synth import thin
+
+    every = {"synth": SHAPES, "corpus": CORPUS, "thin": thin.FAMILIES}[source]
+    chosen = tuple(k for k in kinds.split(",") if k) or every
+    unknown = [k for k in chosen if k not in every]
+    if unknown:
+        raise ValueError(f"unknown {source} kinds {', '.join(unknown)}; choose from {', '.join(every)}")
+    return chosen
 
 
-def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth"):
+def pair_case(k: int, source: str, kinds: str = "") -> tuple[str, int]:
+    """(shape or family, seed) of pair k."""
+    chosen = source_kinds(source, kinds)
+    return chosen[k % len(chosen)], k // len(chosen)
+
+
+def pair_name(k: int, source: str, kinds: str = "") -> str:
+    return "%s seed %d" % pair_case(k, source, kinds)
+
+
+def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth", kinds: str = ""):
     """The two fragments of pair k in `mode` and the truth carrying b onto a."""
     import trimesh
 
     from relicgpu import synth
-    from relicgpu.synth import corpus
+    from relicgpu.synth import corpus, thin
     from relicgpu.cloud.points import cloud_fragment
 
+    kind, seed = pair_case(k, source, kinds)
     if source == "corpus":
-        r = corpus.generate(CORPUS[k % 4], pieces=2, seed=k // 4, faces=4000)
+        r = corpus.generate(kind, pieces=2, seed=seed, faces=4000)
+    elif source == "thin":
+        r = thin.generate(kind, seed=seed)
     else:
-        r = synth.generate(SHAPES[k % 3], pieces=2, seed=k // 3, faces=4000, noise=0.0005, progress=False)
+        r = synth.generate(kind, pieces=2, seed=seed, faces=4000, noise=0.0005, progress=False)
     truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
     frags = []
     for i, f in enumerate(r.fragments):
@@ -93,15 +119,15 @@ def score(a, b, truth, transform) -> tuple[float, float]:
 
 
 def run_pair(k: int, mode: str, points: int, noise: float, source: str, backend: str,
-             changes: dict | None = None) -> dict:
+             changes: dict | None = None, kinds: str = "") -> dict:
     """match_pair on pair k in `mode` with Params changed by `changes`, scored (a row of the JSON)."""
     from relicgpu import match_pair
 
-    a, b, truth = make_pair(k, mode, points, noise, source)
+    a, b, truth = make_pair(k, mode, points, noise, source, kinds)
     t0 = time.perf_counter()
     m = match_pair(a, b, Params().with_(**(changes or {})), backend=backend)
     rot, rms = score(a, b, truth, m.transform)
-    return {"mode": mode, "pair": k, "case": pair_name(k, source), "accepted": bool(m.accepted),
+    return {"mode": mode, "pair": k, "case": pair_name(k, source, kinds), "accepted": bool(m.accepted),
             "rotation_error_deg": rot, "rms": rms, "reason": m.reason, "seconds": time.perf_counter() - t0}
 
 
@@ -130,7 +156,8 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", default="normals,none", help="comma list of normals, none, open")
     ap.add_argument("--points", type=int, default=2500)
     ap.add_argument("--noise", type=float, default=0.0005)
-    ap.add_argument("--source", choices=["synth", "corpus"], default="synth")
+    ap.add_argument("--source", choices=["synth", "corpus", "thin"], default="synth")
+    ap.add_argument("--kinds", default="", help="comma list of the source's shapes or families to cycle through")
     ap.add_argument("--backend", default="numpy")
     ap.add_argument("--workers", type=int, default=1, help="pairs matched at once, a process each")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
@@ -141,8 +168,12 @@ def main(argv=None) -> int:
         changes = parse_assignments(args.set)
     except ValueError as err:
         ap.error(f"--set {err}")
+    try:
+        source_kinds(args.source, args.kinds)
+    except ValueError as err:
+        ap.error(f"--kinds: {err}")
 
-    jobs = [(k, mode, args.points, args.noise, args.source, args.backend, changes)
+    jobs = [(k, mode, args.points, args.noise, args.source, args.backend, changes, args.kinds)
             for mode in args.modes.split(",") for k in range(args.first, args.first + args.pairs)]
     rows = []
 

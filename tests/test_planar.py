@@ -115,19 +115,11 @@ def test_rim_normals_estimated_from_the_points_are_fitted_on_the_skin_alone():
 
 
 def _shelf_halves():
-    """A bookshelf of boards 0.04 thick (sides, top, bottom, back and three shelves; 0.8 wide, 0.3
-    deep, 1.0 high) cut by an oblique plane: each half as 2,500 points with outward normals."""
-    import manifold3d
+    """A bookshelf of boards 0.04 thick (`relicgpu.synth.thin.bookshelf`) cut by an oblique plane:
+    each half as 2,500 points with outward normals."""
+    from relicgpu.synth import thin
 
-    def board(lo, hi):
-        return manifold3d.Manifold.cube(list(np.subtract(hi, lo))).translate(list(lo))
-
-    w, d, h, t = 0.8, 0.3, 1.0, 0.04
-    solid = board([0, 0, 0], [t, d, h])
-    for lo, hi in (([w - t, 0, 0], [w, d, h]), ([0, 0, 0], [w, d, t]), ([0, 0, h - t], [w, d, h]),
-                   ([0, d - t, 0], [w, d, h]), ([0, 0, 0.3], [w, d, 0.3 + t]), ([0, 0, 0.55], [w, d, 0.55 + t]),
-                   ([0, 0, 0.75], [w, d, 0.75 + t])):
-        solid = solid + board(lo, hi)
+    solid = thin.bookshelf(0.04)
     normal = np.array([0.45, 0.8, 0.4]) / np.linalg.norm([0.45, 0.8, 0.4])
     offset = float(normal @ [0.42, 0.15, 0.48])
     halves = []
@@ -166,36 +158,13 @@ def _assert_matched(pa, na, pb, nb, how):
 
 
 def _plant_halves(seed=0):
-    """A potted plant (a pot with soil, a stem, six thin leaves; the size 1) cut in two by a smooth
-    curved cut (`relicgpu.synth.corpus`'s smooth height field): each half as 2,500 points with
+    """A potted plant (`relicgpu.synth.thin.plant`: a pot with soil, a stem, six thin leaves; the
+    size 1) cut in two by a smooth curved cut (`thin.cut_in_two`): each half as 2,500 points with
     outward normals, scanned with noise 0.05% of the size."""
-    import manifold3d as m3
-
-    from relicgpu.synth import corpus
+    from relicgpu.synth import thin
 
     rng = np.random.default_rng(seed)
-    pot = m3.Manifold.cylinder(0.25, 0.14, 0.17, 48) - m3.Manifold.cylinder(0.25, 0.125, 0.155, 48).translate(
-        [0, 0, 0.02])
-    solid = pot + m3.Manifold.cylinder(0.02, 0.15, 0.15, 48).translate([0, 0, 0.19])
-    solid = solid + m3.Manifold.cylinder(0.55, 0.012, 0.008, 16).translate([0, 0, 0.2])
-    for i in range(6):
-        leaf = m3.Manifold.sphere(1.0, 24).scale([0.14, 0.05, 0.008]).translate([0.13, 0, 0])
-        leaf = leaf.rotate([rng.uniform(-25, 25), 0, 0]).rotate([0, -rng.uniform(10, 35), 0])
-        solid = solid + leaf.rotate([0, 0, 360 * i / 6 + rng.uniform(-20, 20)]).translate([0, 0, 0.35 + 0.07 * i])
-    lo, hi = np.split(np.array(solid.bounding_box()), 2)
-    solid = solid.translate(list(-(lo + hi) / 2)).scale([1 / float(np.linalg.norm(hi - lo))] * 3)
-    lo, hi = np.split(np.array(solid.bounding_box()), 2)
-    for _ in range(100):
-        point = 0.5 * (lo + hi) + rng.uniform(-0.2, 0.2, 3) * (hi - lo)
-        normal = rng.normal(size=3)
-        normal /= np.linalg.norm(normal)
-        radius = 0.5 * float(np.linalg.norm(hi - lo)) + float(np.linalg.norm(point - 0.5 * (lo + hi))) + 0.05
-        cutter = corpus._cutter(point, normal, radius, 0.01, corpus._height_function("smooth", rng, 0.01))
-        parts = (solid ^ cutter, solid - cutter)
-        if all(len(p.decompose()) == 1 and p.volume() > 0.2 * solid.volume() for p in parts):
-            break
-    else:
-        raise AssertionError("no cut leaves two pieces")
+    parts = thin.cut_in_two(thin.plant(rng), "smooth", rng)
     halves = []
     for k, part in enumerate(parts):
         m = part.to_mesh()

@@ -35,6 +35,8 @@ CASES = [
     ("bench_mosaic.py", "--pairs 1 --json {tmp}/mosaic.json", "mosaic.json"),
     ("bench_clouds.py", "--pairs 1 --first 2 --modes normals,open --json {tmp}/clouds.json", "clouds.json"),
     ("bench_clouds.py", "--pairs 2 --first 2 --modes normals --workers 2 --json {tmp}/clouds.json", "clouds.json"),
+    ("bench_clouds.py", "--source thin --kinds shelf04-flat --pairs 1 --modes normals --json {tmp}/thin.json",
+     "thin.json"),
     ("bench_pointcloud.py", "--points 20000 --source slab --json {tmp}/pc.json", "pc.json"),
     ("bench_search.py", "--families rough-clean --pieces 3 --seeds 0 --faces 600 --set patch_turns=6 "
      "--json {tmp}/search.json",
