@@ -35,7 +35,7 @@ CUTS = ("flat", "smooth", "rough")
 FAMILIES = tuple(f"{o}-{c}" for o in OBJECTS for c in CUTS)
 CUT_SPACING = 0.01  # the cutter's grid, object units
 MIN_HALF = 0.2  # a half below this share of the object's volume makes the cut be drawn again
-MAX_ATTEMPTS = 100
+MAX_ATTEMPTS = 1000
 
 
 def generate(family: str, seed: int = 0, scatter: bool = True) -> SynthResult:
