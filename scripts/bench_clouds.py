@@ -120,15 +120,22 @@ def score(a, b, truth, transform) -> tuple[float, float]:
 
 def run_pair(k: int, mode: str, points: int, noise: float, source: str, backend: str,
              changes: dict | None = None, kinds: str = "") -> dict:
-    """match_pair on pair k in `mode` with Params changed by `changes`, scored (a row of the JSON)."""
+    """match_pair on pair k in `mode` with Params changed by `changes`, scored (a row of the JSON). A pair
+    that cannot be made or matched is a row too, not accepted, its reason "error: ..." (the run goes on)."""
     from relicgpu import match_pair
 
-    a, b, truth = make_pair(k, mode, points, noise, source, kinds)
     t0 = time.perf_counter()
-    m = match_pair(a, b, Params().with_(**(changes or {})), backend=backend)
+    row = {"mode": mode, "pair": k, "case": pair_name(k, source, kinds)}
+    try:
+        a, b, truth = make_pair(k, mode, points, noise, source, kinds)
+        t0 = time.perf_counter()
+        m = match_pair(a, b, Params().with_(**(changes or {})), backend=backend)
+    except Exception as err:  # noqa: BLE001 - one pair's fault is reported in its row
+        return {**row, "accepted": False, "rotation_error_deg": float("inf"), "rms": float("inf"),
+                "reason": f"error: {type(err).__name__}: {err}", "seconds": time.perf_counter() - t0}
     rot, rms = score(a, b, truth, m.transform)
-    return {"mode": mode, "pair": k, "case": pair_name(k, source, kinds), "accepted": bool(m.accepted),
-            "rotation_error_deg": rot, "rms": rms, "reason": m.reason, "seconds": time.perf_counter() - t0}
+    return {**row, "accepted": bool(m.accepted), "rotation_error_deg": rot, "rms": rms, "reason": m.reason,
+            "seconds": time.perf_counter() - t0}
 
 
 def is_right(row: dict) -> bool:

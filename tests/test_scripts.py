@@ -135,3 +135,14 @@ def test_set_reads_params_fields_by_their_type_and_names_a_bad_one():
                      ("patch_turns=many", "patch_turns must be int")):
         with pytest.raises(ValueError, match=why):
             parse_assignments([bad])
+
+
+def test_bench_clouds_reports_a_pair_it_cannot_match_and_goes_on():
+    """A pair whose clouds cannot be made (no points) is a refused row naming the fault, not a crash."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from bench_clouds import run_pair, summarise
+
+    row = run_pair(2, "normals", 0, 0.0005, "thin", "numpy", kinds="shelf04-flat")
+    assert row["case"] == "shelf04-flat seed 2" and not row["accepted"]
+    assert row["reason"].startswith("error: ") and row["rotation_error_deg"] == float("inf")
+    assert summarise([row])["normals"]["pairs"] == 1
