@@ -481,3 +481,27 @@ def test_a_loose_fit_is_polished_with_the_gate_whose_skin_continues():
     result = match_pair(*frags, backend="numpy")
     assert "loose on its break" in result.reason, result.reason
     _assert_right(result, frags[1], truth)
+
+
+def test_a_faceted_skin_sampled_with_face_normals_still_shows_its_break(monkeypatch):
+    import trimesh
+
+    from relicgpu.cloud import points
+    from relicgpu.synth import thin
+
+    # a plant's faceted leaves and pot, sampled with their face normals as a CAD model's cloud is:
+    # neighbours at exactly 0 degrees dragged the rough break under the split (nothing picked)
+    broken = thin.generate("plant-rough", seed=1)
+    piece, label = broken.fragments[0], np.asarray(broken.fracture_faces[0])
+    mesh = piece.to_trimesh()
+    p, face = trimesh.sample.sample_surface(mesh, 2500, seed=1700)
+    p = p + np.random.default_rng(119).normal(size=p.shape) * 0.0005 * piece.size
+    truth = label[face]
+
+    def picked():
+        return points.fracture_likelihood(p, mesh.face_normals[face]) >= 0.5
+
+    pick = picked()
+    assert (pick & truth).sum() >= 0.5 * truth.sum() and (pick & truth).sum() >= 0.2 * pick.sum()
+    monkeypatch.setattr(points, "EMPTY_PICK", 0.0)  # the first reading alone
+    assert (picked() & truth).sum() < 0.1 * truth.sum()
