@@ -484,24 +484,60 @@ def test_a_loose_fit_is_polished_with_the_gate_whose_skin_continues():
 
 
 def test_a_faceted_skin_sampled_with_face_normals_still_shows_its_break(monkeypatch):
-    import trimesh
-
     from relicgpu.cloud import points
-    from relicgpu.synth import thin
 
     # a plant's faceted leaves and pot, sampled with their face normals as a CAD model's cloud is:
     # neighbours at exactly 0 degrees dragged the rough break under the split (nothing picked)
-    broken = thin.generate("plant-rough", seed=1)
-    piece, label = broken.fragments[0], np.asarray(broken.fracture_faces[0])
-    mesh = piece.to_trimesh()
-    p, face = trimesh.sample.sample_surface(mesh, 2500, seed=1700)
-    p = p + np.random.default_rng(119).normal(size=p.shape) * 0.0005 * piece.size
-    truth = label[face]
+    (a, _), _, (truth, _) = _thin_cloud_pair("plant-rough", 1, 17)
 
     def picked():
-        return points.fracture_likelihood(p, mesh.face_normals[face]) >= 0.5
+        return points.fracture_likelihood(a.vertices, a.normals) >= 0.5
 
     pick = picked()
     assert (pick & truth).sum() >= 0.5 * truth.sum() and (pick & truth).sum() >= 0.2 * pick.sum()
     monkeypatch.setattr(points, "EMPTY_PICK", 0.0)  # the first reading alone
     assert (picked() & truth).sum() < 0.1 * truth.sum()
+
+
+def _thin_cloud_pair(family, seed, k):
+    """bench_clouds' pair k: the two halves of `relicgpu.synth.thin` family seed as 2,500 points
+    each with their face normals, the truth carrying b onto a, and each point's fracture label."""
+    import trimesh
+
+    from relicgpu.cloud.points import cloud_fragment
+    from relicgpu.synth import thin
+
+    r = thin.generate(family, seed=seed)
+    clouds, labels = [], []
+    for i, f in enumerate(r.fragments):
+        mesh = f.to_trimesh()
+        p, face = trimesh.sample.sample_surface(mesh, 2500, seed=100 * k + i)
+        p = p + np.random.default_rng(7 * k + i).normal(size=p.shape) * 0.0005 * f.size
+        clouds.append(cloud_fragment(f.name, p, mesh.face_normals[face]))
+        labels.append(np.asarray(r.fracture_faces[i])[face])
+    return clouds, np.linalg.inv(r.poses[0]) @ r.poses[1], labels
+
+
+def test_two_boards_front_edges_laid_on_each_other_are_no_thin_cut():
+    """A bookshelf of boards 0.02 thick cut rough: its boards' front edges pick as bands as its
+    break does, and were accepted laid on each other, half a turn off (`thin_wall_fit`). Their
+    contact has one normal on both sides, a break's does not (`one_face_seam`)."""
+    from relicgpu.backends import resolve
+    from relicgpu.pair.cloudmatch import one_face_seam
+    from relicgpu.pair.verify import SurfaceSample, index_cache
+
+    (a, b), truth, _ = _thin_cloud_pair("shelf02-rough", 0, 2)
+    result = match_pair(a, b, backend="numpy")
+    assert not result.accepted or _pose_gap(result.transform, truth, b.vertices)[0] < 2.0, result.reason
+
+    rng = np.random.default_rng(0)
+    strip = np.column_stack([rng.uniform(0, 1, 200), rng.uniform(0, 0.02, 200), np.zeros(200)])
+    flat = np.tile([0.0, 0.0, 1.0], (200, 1))
+    rough = flat + rng.normal(size=(200, 3)) * 0.3
+    rough /= np.linalg.norm(rough, axis=1)[:, None]
+    def sample(normals):
+        return SurfaceSample(strip, np.zeros(200, np.int64), normals, strip, normals)
+    index_of = index_cache(resolve("numpy"))
+    assert one_face_seam(sample(flat), sample(-flat), np.eye(4), 0.02, index_of)
+    assert not one_face_seam(sample(rough), sample(-rough), np.eye(4), 0.02, index_of)
+    assert not one_face_seam(sample(flat), sample(-rough), np.eye(4), 0.02, index_of)
