@@ -267,7 +267,9 @@ def _rough_split(x: np.ndarray, spreads: float | None, majority: bool) -> np.nda
         split = otsu
     else:
         split = max(otsu, centre + spreads * noise)
-    return 1.0 / (1.0 + np.exp(-(x - split) / noise))
+    from scipy.special import expit  # the logistic, without exp's overflow far below the split
+
+    return expit((x - split) / noise)
 
 
 # --- thinning -------------------------------------------------------------
