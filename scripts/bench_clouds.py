@@ -8,12 +8,15 @@
     python scripts/bench_clouds.py --source corpus --set min_skin=None  # Params changed for every pair
     python scripts/bench_clouds.py --source thin --pairs 108            # bookshelves and a plant, 12 seeds
     python scripts/bench_clouds.py --source corpus --kinds vessel-clean --pairs 48   # one family, seeds 0-47
+    python scripts/bench_clouds.py --source realdata --pairs 20         # Blender shards, touching pairs 0-9 of each set
 
 Pair k is relicgpu.synth's two-piece {vase, torso, slab}[k % 3] of seed k // 3 (4,000 faces,
 scanner noise 0.05% of the size); with --source corpus the clean two-piece object of
 relicgpu.synth.corpus family {rough, smooth, voronoi, vessel}-clean [k % 4] of seed k // 4; with
 --source thin relicgpu.synth.thin's family [k % 9] ({shelf02, shelf04, plant} x {flat, smooth,
-rough}) of seed k // 9. --kinds keeps some of the source's kinds (pair k is then kinds[k % len] of
+rough}) of seed k // 9; with --source realdata the touching pair k // 2 (in `corpus.realdata`'s
+order) of the ../shared/realdata Blender set [k % 2] (cell-fracture shards of a cube and a
+cylinder, third-party: fractures this project did not make). --kinds keeps some of the source's kinds (pair k is then kinds[k % len] of
 seed k // len). Each piece becomes --points points drawn from its surface
 (seed 100 k + i) with Gaussian noise of --noise times the piece's size, with the true normals
 (`normals`), with none (`none`), or as the mesh itself with three holes cut into its skin
@@ -44,7 +47,9 @@ def source_kinds(source: str, kinds: str = "") -> tuple[str, ...]:
     """The shapes or families that pairs cycle through: all of `source`'s, or those of the comma list `kinds`."""
     from relicgpu.synth import thin
 
-    every = {"synth": SHAPES, "corpus": CORPUS, "thin": thin.FAMILIES}[source]
+    from relicgpu.synth.corpus import REALDATA_SETS
+
+    every = {"synth": SHAPES, "corpus": CORPUS, "thin": thin.FAMILIES, "realdata": REALDATA_SETS}[source]
     chosen = tuple(k for k in kinds.split(",") if k) or every
     unknown = [k for k in chosen if k not in every]
     if unknown:
@@ -59,7 +64,7 @@ def pair_case(k: int, source: str, kinds: str = "") -> tuple[str, int]:
 
 
 def pair_name(k: int, source: str, kinds: str = "") -> str:
-    return "%s seed %d" % pair_case(k, source, kinds)
+    return ("%s pair %d" if source == "realdata" else "%s seed %d") % pair_case(k, source, kinds)
 
 
 def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth", kinds: str = ""):
@@ -75,11 +80,14 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
         r = corpus.generate(kind, pieces=2, seed=seed, faces=4000)
     elif source == "thin":
         r = thin.generate(kind, seed=seed)
+    elif source == "realdata":
+        r = corpus.realdata(kind, seed=0)
     else:
         r = synth.generate(kind, pieces=2, seed=seed, faces=4000, noise=0.0005, progress=False)
-    truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
+    pieces = r.touching[seed] if source == "realdata" else (0, 1)
+    truth = np.linalg.inv(r.poses[pieces[0]]) @ r.poses[pieces[1]]
     frags = []
-    for i, f in enumerate(r.fragments):
+    for i, f in zip(pieces, [r.fragments[p] for p in pieces]):
         m = f.to_trimesh()
         if mode == "open":
             frags.append(_cut_holes(f, r.fracture_faces[i], np.random.default_rng(100 * k + i)))
@@ -147,7 +155,7 @@ def summarise(rows: list[dict]) -> dict:
     summary = {}
     for row in rows:
         s = summary.setdefault(row["mode"], {"right": 0, "wrong_accepted": 0, "pairs": 0, "by_kind": {}})
-        kind = s["by_kind"].setdefault(row["case"].split(" seed ")[0], [0, 0, 0])
+        kind = s["by_kind"].setdefault(row["case"].rsplit(" ", 2)[0], [0, 0, 0])
         right, wrong = is_right(row), row["accepted"] and not is_right(row)
         s["right"] += right
         s["wrong_accepted"] += wrong
@@ -163,7 +171,7 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", default="normals,none", help="comma list of normals, none, open")
     ap.add_argument("--points", type=int, default=2500)
     ap.add_argument("--noise", type=float, default=0.0005)
-    ap.add_argument("--source", choices=["synth", "corpus", "thin"], default="synth")
+    ap.add_argument("--source", choices=["synth", "corpus", "thin", "realdata"], default="synth")
     ap.add_argument("--kinds", default="", help="comma list of the source's shapes or families to cycle through")
     ap.add_argument("--backend", default="numpy")
     ap.add_argument("--workers", type=int, default=1, help="pairs matched at once, a process each")
