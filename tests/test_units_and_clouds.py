@@ -541,3 +541,15 @@ def test_two_boards_front_edges_laid_on_each_other_are_no_thin_cut():
     assert one_face_seam(sample(flat), sample(-flat), np.eye(4), 0.02, index_of)
     assert not one_face_seam(sample(rough), sample(-rough), np.eye(4), 0.02, index_of)
     assert not one_face_seam(sample(flat), sample(-rough), np.eye(4), 0.02, index_of)
+
+
+def test_crease_regions_that_touch_widest_where_one_is_flat_decide_nothing():
+    """A bookshelf of boards 0.02 thick cut smooth: two of its boards' flat faces touch widest laid
+    on each other half a turn off, and that touch alone was taken (`_match_regions`). A flat region
+    holds no turn or slide, so the fit is refused there, and the thin walls' bands then find the
+    break."""
+    from relicgpu import match_pair
+
+    (a, b), truth, _ = _thin_cloud_pair("shelf02-smooth", 11, 100)
+    result = match_pair(a, b, backend="numpy")
+    assert result.accepted and _pose_gap(result.transform, truth, b.vertices)[0] < 2.0, result.reason

@@ -99,7 +99,9 @@ LOOSE_FACING = 0.6
 # ... and only between regions that curve (`curvedness` at least LOOSE_CURVED): two flat regions
 # hold a fit in neither its slide nor its turn in their plane, which the skin alone then settles
 # a few degrees off (voronoi cuts, 0.002-0.004; the smooth cuts' regions 0.04-0.16; flat cuts are
-# `planar`'s to match).
+# `planar`'s to match). Nor is a fit taken on its regions' touch alone where one is flat
+# (`pipeline._match_regions`): all eight such fits of the Blender cube's shards, the thin objects
+# and the corpus's clouds (with normals and without) were wrong.
 LOOSE_CURVED = 0.02
 # A fit found on the roughness picks is refused where, of at least PICK_SKIN_NEAR free skin
 # points near the partner's, under MIN_PICK_SKIN continue its surface (`seam.skin_points`): such

@@ -195,9 +195,9 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     (a clean break is no rougher than the skin). Of the accepted fits, the one whose skin runs on
     into the partner's across the seam (`seam.skin_continuation`, at least `Params.min_skin`) wins
     where no fit at another turn continues nearly as well (`_by_skin`); else the one whose regions
-    touch over the largest share, unless a fit at another pose touches nearly as widely: a
-    symmetric break cannot tell them apart, and a guess is worse than no answer (result: kept
-    where none wins). Where no fit passing the region bars wins on its skin, fits touching and
+    touch over the largest share, where both regions curve (`LOOSE_CURVED`) and no fit at another
+    pose touches nearly as widely: a symmetric break cannot tell them apart, and a guess is worse
+    than no answer (result: kept where none wins). Where no fit passing the region bars wins on its skin, fits touching and
     facing less (`cloudmatch.LOOSE_OVERLAP`, `LOOSE_FACING`: a smooth cut's region holds skin
     beyond a shallow rim) may, on their skin alone, where both regions curve (`LOOSE_CURVED`)."""
     planar = _match_planes(pa, pb, params, be, scale, timings)
@@ -235,10 +235,16 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
         return by_skin
     if not accepted:
         return result
-    overlap, transform, ver, *_ = accepted[0]
+    overlap, transform, ver, sa, sb, *_ = accepted[0]
     rivals = [o for o, t, *_ in accepted[1:] if not same_pose(t, transform, contact)]
     fit = PairMatch(transform, True, overlap * (1.0 - ver.penetration), ver.rmse, overlap, ver.penetration,
                     np.zeros((0, 2), np.int64), -1, -1, "accepted (crease regions)", timings)
+    bends = curvedness(sa.fracture), curvedness(sb.fracture)
+    if min(bends) < LOOSE_CURVED:
+        # a flat region holds neither the turn nor the slide of a fit in its plane, so the widest touch
+        # is a guess there (flat faces of the skin laid on each other: a Blender cube's, boards')
+        return replace(fit, accepted=False, score=0.0, reason="unsettled: crease regions touch widest where one is "
+                       f"flat (curvedness {bends[0]:.3f} and {bends[1]:.3f}), which holds no turn or slide")
     if rivals and rivals[0] >= AMBIGUOUS_SHARE * overlap:
         return replace(fit, accepted=False, score=0.0, reason="ambiguous: crease regions fit at two poses alike "
                        f"(overlap {overlap:.2f} and {rivals[0]:.2f})")
