@@ -16,9 +16,9 @@ relicgpu.synth.corpus family {rough, smooth, voronoi, vessel}-clean [k % 4] of s
 --source thin relicgpu.synth.thin's family [k % 9] ({shelf02, shelf04, plant} x {flat, smooth,
 rough}) of seed k // 9; with --source realdata the touching pair k // 2 (in `corpus.realdata`'s
 order) of the ../shared/realdata Blender set [k % 2] (cell-fracture shards of a cube and a
-cylinder, third-party: fractures this project did not make). --kinds keeps some of the source's kinds (pair k is then kinds[k % len] of
-seed k // len). Each piece becomes --points points drawn from its surface
-(seed 100 k + i) with Gaussian noise of --noise times the piece's size, with the true normals
+cylinder, third-party: fractures this project did not make). --kinds keeps some of the source's
+kinds (pair k is then kinds[k % len] of seed k // len). Each piece becomes --points points drawn
+from its surface (seed 100 k + i) with Gaussian noise of --noise times the piece's size, with the true normals
 (`normals`), with none (`none`), or as the mesh itself with three holes cut into its skin
 (`open`). A pair is right when `match_pair` accepts it with a rotation error under 2 degrees and
 the moved piece's points within 1% RMS of their true place, lengths relative to the object's
@@ -46,7 +46,6 @@ CORPUS = ("rough-clean", "smooth-clean", "voronoi-clean", "vessel-clean")
 def source_kinds(source: str, kinds: str = "") -> tuple[str, ...]:
     """The shapes or families that pairs cycle through: all of `source`'s, or those of the comma list `kinds`."""
     from relicgpu.synth import thin
-
     from relicgpu.synth.corpus import REALDATA_SETS
 
     every = {"synth": SHAPES, "corpus": CORPUS, "thin": thin.FAMILIES, "realdata": REALDATA_SETS}[source]

@@ -64,6 +64,22 @@ def test_script_runs_on_tiny_inputs(script, args, output, tmp_path):
         assert (tmp_path / output).is_file()
 
 
+def test_bench_clouds_matches_a_pair_of_real_shards(tmp_path):
+    """`--source realdata`: a touching pair of a ../shared/realdata Blender set, as clouds."""
+    from relicgpu.synth.corpus import REALDATA, REALDATA_SETS
+
+    if not (REALDATA / REALDATA_SETS[0]).is_dir():
+        pytest.skip(f"{REALDATA} is absent (third-party sets, not in the repository)")
+    cmd = [sys.executable, str(ROOT / "scripts" / "bench_clouds.py"), "--source", "realdata", "--pairs", "1",
+           "--modes", "normals", "--json", str(tmp_path / "real.json")]
+    run = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr[-4000:]
+    import json
+
+    row = json.loads((tmp_path / "real.json").read_text())["rows"][0]
+    assert row["case"] == f"{REALDATA_SETS[0]} pair 0" and not row["reason"].startswith("error")
+
+
 def test_bench_group_corpus_heap_holds_four_objects_of_one_family():
     """A corpus heap: four objects of distinct solids (the fourth repeats the first's kind of solid
     at another scale), 5-6 pieces each, shuffled."""

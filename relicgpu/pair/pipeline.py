@@ -16,7 +16,7 @@ from .icp import (apply, batched_icp, distinct_poses, facing_poses, invert, rans
 from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params
-from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP,
+from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP, MIN_FACING,
                          PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS, point_spacing, REGION_FACING, REGION_OVERLAP,
                          REGION_RESIDUAL, REGION_TURNS, RESIDUAL_SPACINGS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS,
                          SKIN_RIVALS_ESTIMATED, WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness,
@@ -254,8 +254,9 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
 def _match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict) -> PairMatch | None:
     """Two clouds matched on a flat or curved cut (`planar`): the best of `planar.polished_fits`, where it scores at
     least `Params.min_plane`, no fit turned more than PLANE_RIVAL_DEG from it or shifted more than PLANE_RIVAL_SLIDE
-    scores PLANE_RIVALS of it, and it verifies as a region fit. A best fit that verifies but has such a rival is a
-    symmetric cut: refused as ambiguous. None where no fit decides (the crease regions are tried)."""
+    scores PLANE_RIVALS of it, and it verifies (touching as a region fit does, facing as any cloud fit). A best fit
+    that verifies but has such a rival is a symmetric cut: refused as ambiguous. None where no fit decides (the
+    crease regions are tried)."""
     if params.min_plane is None or not (pa.planes and pb.planes):
         return None
     t0 = time.perf_counter()
@@ -270,16 +271,18 @@ def _match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, 
     rival = max([s for s, t, _ in fits[1:] if apart(t, transform, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE * scale, centre)],
                 default=0.0)
     (plane_a, sa, rough_a), (plane_b, sb, rough_b) = pa.planes[ia], pb.planes[ib]
-    # each piece lies behind its plane: a thin cut's fit touches mostly along the seam, where the skin
-    # runs on and the cut face meets the partner's skin edge-on (facing 0.35-0.7 at a bookshelf's true
-    # pose), and its face is a few points wide (two samplings lie up to RIM_HIT spacings apart, and
-    # its roughness, over strips a point or two wide, tells nothing of theirs)
+    # the planes lie face to face and each piece behind its own: beside the cut the skin touches across
+    # the seam side by side (facing 0.69-0.79 at voronoi-clean clouds' true poses, where region fits
+    # need REGION_FACING), so only the clouds' own facing bar; a thin cut's fit touches mostly along
+    # the seam, where the cut face meets the partner's skin edge-on (facing 0.35-0.7 at a bookshelf's
+    # true pose), and its face is a few points wide (two samplings lie up to RIM_HIT spacings apart,
+    # and its roughness, over strips a point or two wide, tells nothing of theirs)
     thin = is_thin(plane_a, spacing) and is_thin(plane_b, spacing)
     bound = max(REGION_RESIDUAL * np.hypot(rough_a, rough_b), PLANE_RESIDUAL_FLOOR * scale,
                 RESIDUAL_SPACINGS * spacing if thin else 0.0)
     ver = verify_clouds(sa, sb, transform, be, max(contact, RIM_HIT * spacing) if thin else contact, bound,
                         REGION_OVERLAP, params.penetration_depth * scale, index_cache(be),
-                        min_facing=0.0 if thin else REGION_FACING)
+                        min_facing=0.0 if thin else MIN_FACING)
     if not ver.accepted:
         return None
     cut = "a flat cut" if plane_a.bend is None and plane_b.bend is None else "a curved cut"
