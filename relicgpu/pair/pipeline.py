@@ -197,9 +197,10 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     where no fit at another turn continues nearly as well (`_by_skin`); else the one whose regions
     touch over the largest share, where both regions curve (`LOOSE_CURVED`) and no fit at another
     pose touches nearly as widely: a symmetric break cannot tell them apart, and a guess is worse
-    than no answer (result: kept where none wins). Where no fit passing the region bars wins on its skin, fits touching and
-    facing less (`cloudmatch.LOOSE_OVERLAP`, `LOOSE_FACING`: a smooth cut's region holds skin
-    beyond a shallow rim) may, on their skin alone, where both regions curve (`LOOSE_CURVED`)."""
+    than no answer (result: kept where none wins). Where no fit passing the region bars wins on
+    its skin, fits touching and facing less (`cloudmatch.LOOSE_OVERLAP`, `LOOSE_FACING`: a smooth
+    cut's region holds skin beyond a shallow rim) may, on their skin alone, where both regions
+    curve (`LOOSE_CURVED`)."""
     planar = _match_planes(pa, pb, params, be, scale, timings)
     if planar is not None:
         return planar
