@@ -105,22 +105,32 @@ def grown_facets(vertices: np.ndarray, faces: np.ndarray, seg, scale: float) -> 
     first, the faces reached across edges whose normals lie within `GROW_DEG` of the seed's and
     whose centres lie within `GROW_GAP` of its plane. Parameters as `flat_facets`."""
     centres = vertices[faces].mean(axis=1)
-    pairs = np.concatenate([seg.topology.edge_faces, seg.topology.edge_faces[:, ::-1]])
-    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
-    starts = np.searchsorted(pairs[:, 0], np.arange(len(faces) + 1))
-    region = np.full(len(faces), -1)
     turn, gap = np.cos(np.radians(GROW_DEG)), GROW_GAP * scale
-    for seed in np.argsort(-seg.areas, kind="stable"):
+    pairs = np.concatenate([seg.topology.edge_faces, seg.topology.edge_faces[:, ::-1]])
+    s, t = pairs[np.argsort(pairs[:, 0], kind="stable")].T
+    # the walk is sequential (each region takes its seed's plane), so it runs on Python lists:
+    # numpy's per-call cost over thousands of small fronts was most of `prepare`'s time
+    starts = np.searchsorted(s, np.arange(len(faces) + 1)).tolist()
+    t, normals, centres_l = t.tolist(), seg.normals.tolist(), centres.tolist()
+    region = [-1] * len(faces)
+    for seed in np.argsort(-seg.areas, kind="stable").tolist():
         if region[seed] >= 0:
             continue
         region[seed] = seed
-        normal, centre, front = seg.normals[seed], centres[seed], [seed]
-        while front:
-            nbr = np.concatenate([pairs[starts[f]:starts[f + 1], 1] for f in front])
-            nbr = np.unique(nbr[region[nbr] < 0])
-            nbr = nbr[(seg.normals[nbr] @ normal > turn) & (np.abs((centres[nbr] - centre) @ normal) < gap)]
-            region[nbr] = seed
-            front = list(nbr)
+        nx, ny, nz = normals[seed]
+        cx, cy, cz = centres_l[seed]
+        stack = [seed]
+        while stack:
+            f = stack.pop()
+            for g in t[starts[f]:starts[f + 1]]:
+                if region[g] < 0:
+                    mx, my, mz = normals[g]
+                    px, py, pz = centres_l[g]
+                    if (mx * nx + my * ny + mz * nz > turn
+                            and abs((px - cx) * nx + (py - cy) * ny + (pz - cz) * nz) < gap):
+                        region[g] = seed
+                        stack.append(g)
+    region = np.array(region)
     return _facets(region, vertices, faces, seg, scale)
 
 
