@@ -177,7 +177,7 @@ def nearest_index(target: np.ndarray) -> "NearestIndex":
     return NearestIndex(cKDTree(dst))
 
 
-def _query_threads() -> int:
+def query_threads() -> int:
     """Threads for a k-d tree query: all cores, unless the process was given fewer (a Ray
     worker runs with OMP_NUM_THREADS=1; sixteen workers each starting sixteen threads
     per query ran at half speed)."""
@@ -197,7 +197,7 @@ class NearestIndex:
             return np.zeros(0, np.int32), np.zeros(0)
         if not np.isfinite(src).all():
             raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
-        workers = _query_threads() if len(src) >= 2048 else 1
+        workers = query_threads() if len(src) >= 2048 else 1
         dist, idx = self.tree.query(src, k=1, workers=workers)
         return idx.astype(np.int32), dist
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..backends.numpy import query_threads
 from ..topology import Topology, components, ring_average, weighted_quantile
 
 # Wall ends (`wall_end_labels`, dense thin walls): chosen on corpus vessel-noisy and vessel-clean
@@ -148,7 +149,7 @@ def wall_thickness(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, 
     if not skin.any() or size <= 0 or len(centers) < 4:
         return np.inf
     idx = np.flatnonzero(skin)
-    _, near = cKDTree(centers).query(centers[idx], k=min(neighbours, len(centers)))
+    _, near = cKDTree(centers).query(centers[idx], k=min(neighbours, len(centers)), workers=query_threads())
     gap = np.einsum("fkd,fd->fk", centers[idx][:, None] - centers[near], normals[idx])
     opposite = (np.einsum("fkd,fd->fk", normals[near], normals[idx]) < -0.7) & (gap > 0)
     depth = np.where(opposite, gap, np.inf).min(1)
