@@ -1,5 +1,6 @@
-"""Engines: local (sequential / threads) and Ray (same assembly as local; a worker killed
-mid-run is retried and nothing is lost). One local Ray session is shared by the module."""
+"""Engines: local (sequential / threads / forked processes, one assembly alike) and Ray (same
+assembly as local; a worker killed mid-run is retried and nothing is lost). One local Ray session
+is shared by the module."""
 import os
 import signal
 import sys
@@ -19,6 +20,19 @@ def _square(payload, *shared):
     return payload * payload + sum(shared)
 
 
+def _square_where(payload, *shared):
+    return _square(payload, *shared), os.getpid()
+
+
+def _fail_on_three(payload, *shared):
+    if payload == 3:
+        raise ValueError("job 3 failed")
+    return payload
+
+
+forks = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the local engine forks on Linux only")
+
+
 def test_local_engine_hands_back_every_result_sequential_and_threaded():
     jobs = [Job(i, (i % 2,)) for i in range(7)]
     objects = {0: 10, 1: 100}
@@ -26,6 +40,27 @@ def test_local_engine_hands_back_every_result_sequential_and_threaded():
         got = {}
         engine.map(_square, jobs, objects, lambda job, r: got.__setitem__(job.payload, r))
         assert got == {i: i * i + objects[i % 2] for i in range(7)}
+
+
+@forks
+def test_local_engine_forks_workers_that_see_the_shared_objects():
+    jobs = [Job(i, (i % 2,)) for i in range(7)]
+    objects = {0: 10, 1: 100}
+    engine = LocalEngine(3, processes=True)
+    assert engine.processes and engine.parallelism == 3
+    got = {}
+    engine.map(_square_where, jobs, objects, lambda job, r: got.__setitem__(job.payload, r))
+    assert {i: r for i, (r, _) in got.items()} == {i: i * i + objects[i % 2] for i in range(7)}
+    assert os.getpid() not in {pid for _, pid in got.values()}
+    # one thread each: a process per core, not a kd-tree's threads per process too
+    assert not LocalEngine(1, processes=True).processes
+    assert make_engine("local", 2, backend=sys.modules["relicgpu.backends.numpy"]).processes
+
+
+@forks
+def test_a_forked_job_that_fails_stops_the_map_with_its_error():
+    with pytest.raises(ValueError, match="job 3 failed"):
+        LocalEngine(2, processes=True).map(_fail_on_three, [Job(i) for i in range(6)], {}, lambda job, r: None)
 
 
 def test_unknown_engine_is_refused():
@@ -56,6 +91,13 @@ def synth_fragments(tmp_path_factory):
 @pytest.fixture(scope="module")
 def local_doc(synth_fragments):
     return _comparable(assemble(synth_fragments, backend="numpy", progress=False).to_dict())
+
+
+@forks
+def test_forked_assembly_equals_one_job_after_the_other(synth_fragments):
+    one, forked = (_comparable(assemble(synth_fragments, backend="numpy", workers=w, progress=False).to_dict())
+                   for w in (1, 2))
+    assert one == forked
 
 
 def _comparable(doc):

@@ -14,6 +14,8 @@ from scipy.spatial import cKDTree
 from ._prep import PpfVotes
 
 name = "numpy"
+# no device or thread state of its own: the local engine may fork workers that run it (`heap.engines`)
+forks = True
 
 
 # --- normals -----------------------------------------------------------------

@@ -6,8 +6,10 @@ so an interrupted run loses nothing finished). A job is a payload plus the keys
 of the shared objects it needs; the function is called as
 `fn(payload, *[objects[k] for k in needs])` and returns a picklable result.
 
-* `local`: in this process; a thread pool when the backend releases the GIL
-  (its `releases_gil` attribute), else one job after the other.
+* `local`: on this machine: a thread pool when the backend releases the GIL (its
+  `releases_gil` attribute); forked worker processes, one thread each, where the backend keeps
+  no device or thread state a fork would break (its `forks` attribute: numpy) and the system
+  forks (Linux); else one job after the other in this process.
 * `ray`: each job is a Ray task. `address` joins a running cluster, otherwise a
   local Ray starts with `workers` CPUs (or the machine's). Shared objects go
   into the object store once; a task takes one GPU where the cluster has GPUs and the
@@ -17,8 +19,10 @@ of the shared objects it needs; the function is called as
 """
 from __future__ import annotations
 
+import multiprocessing
 import os
-from concurrent.futures import ThreadPoolExecutor, as_completed
+import sys
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -36,7 +40,8 @@ def make_engine(name: str, workers: int | None = None, address: str | None = Non
                 gpus_per_task: float | None = None):
     """The engine called `name` ("local" or "ray")."""
     if name == "local":
-        return LocalEngine(workers, threads=bool(getattr(backend, "releases_gil", False)))
+        return LocalEngine(workers, threads=bool(getattr(backend, "releases_gil", False)),
+                           processes=bool(getattr(backend, "forks", False)))
     if name == "ray":
         return RayEngine(workers, address, gpus_per_task, needs_gpu=backend is None or on_gpu(backend))
     raise ValueError(f"unknown engine {name!r}; choose from {', '.join(ENGINES)}")
@@ -59,31 +64,67 @@ def task_gpus(cluster_gpus: int, requested: float | None, needs_gpu: bool) -> fl
 class LocalEngine:
     name = "local"
 
-    def __init__(self, workers: int | None = None, threads: bool = False):
+    def __init__(self, workers: int | None = None, threads: bool = False, processes: bool = False):
         self.workers = max(1, int(workers or os.cpu_count() or 1))
         self.threads = threads and self.workers > 1
+        # (Linux only: macOS forks, but its BLAS does not survive a fork)
+        self.processes = processes and not self.threads and self.workers > 1 and sys.platform.startswith("linux")
 
     def map(self, fn: Callable, jobs: list[Job], objects: dict, on_result: Callable[[Job, Any], None]) -> None:
+        if self.processes and len(jobs) > 1:
+            return self._map_forked(fn, jobs, objects, on_result)
         if not self.threads:
             for job in jobs:
                 on_result(job, fn(job.payload, *[objects[k] for k in job.needs]))
             return
         with ThreadPoolExecutor(self.workers) as pool:
             futures = {pool.submit(fn, job.payload, *[objects[k] for k in job.needs]): job for job in jobs}
-            try:
-                for fut in as_completed(futures):
-                    on_result(futures[fut], fut.result())
-            except BaseException:
-                for fut in futures:
-                    fut.cancel()
-                raise
+            _collect(futures, on_result)
+
+    def _map_forked(self, fn, jobs, objects, on_result) -> None:
+        global _FORKED
+        _FORKED = (fn, jobs, objects)  # the workers inherit these: nothing is pickled but the results
+        try:
+            with ProcessPoolExecutor(min(self.workers, len(jobs)), mp_context=multiprocessing.get_context("fork"),
+                                     initializer=_forked_start) as pool:
+                _collect({pool.submit(_forked_job, k): job for k, job in enumerate(jobs)}, on_result)
+        finally:
+            _FORKED = None
 
     def close(self) -> None:
         pass
 
     @property
     def parallelism(self) -> int:
-        return self.workers if self.threads else 1
+        return self.workers if self.threads or self.processes else 1
+
+
+_FORKED: tuple | None = None  # (fn, jobs, objects) of the forked map under way
+
+
+def _forked_start() -> None:
+    """A forked worker: one thread of its own (`backends.numpy.query_threads`); the parent's
+    host thread pool did not survive the fork."""
+    from ..backends import _prep
+
+    os.environ["OMP_NUM_THREADS"] = "1"
+    _prep._POOL = None
+
+
+def _forked_job(k: int):
+    fn, jobs, objects = _FORKED
+    return fn(jobs[k].payload, *[objects[n] for n in jobs[k].needs])
+
+
+def _collect(futures: dict, on_result: Callable[[Job, Any], None]) -> None:
+    """Hand each result back as it comes; on an error cancel what has not started, then raise."""
+    try:
+        for fut in as_completed(futures):
+            on_result(futures[fut], fut.result())
+    except BaseException:
+        for fut in futures:
+            fut.cancel()
+        raise
 
 
 class RayEngine:

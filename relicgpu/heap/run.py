@@ -82,7 +82,8 @@ def _assemble_arguments(parser) -> None:
     parser.add_argument("--backend", default="auto", help="numpy, warp-cpu, warp-cuda[:N], opencl[:PLATFORM] or auto")
     parser.add_argument("--engine", default="local", choices=["local", "ray"], help="where pairs are matched")
     parser.add_argument("--address", default=None, help="Ray cluster to join (e.g. ray://head:10001 or auto)")
-    parser.add_argument("--workers", type=int, default=None, help="parallel workers (threads or local Ray CPUs)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="parallel workers (forked processes or threads here, or local Ray CPUs; default: every core)")
     parser.add_argument("--gpus-per-task", type=float, default=None,
                         help="GPUs per Ray task where there are GPUs (default 1; e.g. 0.125 lets 8 tasks share one)")
     parser.add_argument("--cache-dir", default=None, help="cache directory (default OUT/cache)")
