@@ -144,6 +144,26 @@ def test_nearest_index_answers_every_query_like_nearest_neighbours(backend):
     np.testing.assert_allclose(dist, np.linalg.norm(target[:10] - target[3], axis=1), rtol=1e-12)
 
 
+def test_nearest_index_within_a_reach_is_exact_inside_it(backend):
+    """`query(within=r)`: every point nearer than r as without it; a farther one either exact or
+    (len(target), inf), the k-d tree's early stop; on the reach itself and with r = 0 too."""
+    rng = np.random.default_rng()
+    target = _sphere(rng, 3000)
+    index = backend.nearest_index(target)
+    source = np.concatenate([_sphere(rng, 2000, 1.05), rng.normal(size=(2000, 3)) * 3, target[:5]])
+    idx0, d0 = index.query(source)
+    for reach in (0.0, 0.05, float(np.median(d0)), 10.0):
+        idx, dist = index.query(source, within=reach)
+        assert idx.dtype == np.int32 and dist.dtype == np.float64 and idx.shape == (len(source),)
+        near = d0 < reach
+        np.testing.assert_array_equal(dist[near], d0[near])
+        np.testing.assert_allclose(dist[near], np.linalg.norm(source[near] - target[idx[near]], axis=1), rtol=1e-12)
+        cut = ~np.isfinite(dist)
+        assert np.all(idx[cut] == len(target)) and not np.any(cut & near)
+        kept = ~near & ~cut
+        np.testing.assert_array_equal(dist[kept], d0[kept])
+
+
 def test_nearest_index_faults(backend):
     with pytest.raises(ValueError):
         backend.nearest_index(np.zeros((0, 3)))

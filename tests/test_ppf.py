@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from relicgpu.backends import get_backend
-from relicgpu.pair.icp import apply, axis_rotation, batched_icp, rotation_angle_deg
+from relicgpu.backends import numpy as numpy_backend
+from relicgpu.pair.icp import apply, axis_rotation, batched_icp, refine_point_to_plane, rotation_angle_deg
 from relicgpu.pair.ppf import pair_table, ppf_poses, smoothed_normals, vote_poses
 
 
@@ -167,3 +168,50 @@ def test_weighted_icp_leaves_out_points_of_no_weight():
     weighted, _ = batched_icp(source, target, np.eye(4)[None], be, 40, 0.3, 0.01, trim=0.5,
                               weights=np.where(bend, 0.0, 1.0))
     assert np.linalg.norm(apply(weighted[0], source) - source_true, axis=1).max() < 0.005
+
+
+class _Exact:
+    """The numpy index asked without its reach: every distance exact."""
+
+    def __init__(self, target):
+        self.index = numpy_backend.nearest_index(target)
+
+    def query(self, source, within=None):
+        return self.index.query(source)
+
+
+def test_batched_icp_is_the_same_when_the_search_stops_at_its_reach():
+    """A k-d tree that gives up past the reject distance (`NearestIndex.query(within=)`) leaves
+    every round as it was, bit for bit: starts near and far, rows whose trim quantile lies inside
+    the reach, beyond it, and on its edge (one order statistic inside, the next beyond)."""
+    rng = np.random.default_rng(5)
+    target = rng.random((400, 3))
+    source = target[:21] + 0.03 * rng.normal(size=(21, 3))
+    source[11:] += 0.5  # 11 of 21 points near: the median's order statistics straddle the reach
+    starts = np.tile(np.eye(4), (5, 1, 1))
+    starts[1, :3, 3] = 3.0  # every point beyond reach
+    starts[2, :3, :3] = axis_rotation(np.array([0.0, 0.0, 1.0]), 0.3)
+    starts[3, :3, 3] = 0.02
+    starts[4, :3, :3] = axis_rotation(np.array([1.0, 0.0, 0.0]), 2.0)
+    weights, target_weights = rng.random(21), rng.random(400)
+    for trim, iterations in ((0.5, 1), (0.5, 6), (0.05, 6), (0.2, 6)):
+        got, exact = (batched_icp(source, target, starts, numpy_backend, iterations, 0.1, 0.01, trim=trim, index=index,
+                                  weights=weights, target_weights=target_weights)
+                      for index in (None, _Exact(target)))
+        np.testing.assert_array_equal(got[0], exact[0])
+        np.testing.assert_array_equal(got[1], exact[1])
+
+
+def test_point_to_plane_polish_is_the_same_when_the_search_stops_at_its_cutoff():
+    rng = np.random.default_rng(6)
+    target = rng.random((500, 3))
+    normals = rng.normal(size=(500, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    source = target[:60] + 0.01 * rng.normal(size=(60, 3))
+    source[30:] += 0.3  # half of the points beyond the cutoff
+    starts = np.tile(np.eye(4), (3, 1, 1))
+    starts[1, :3, 3] = 0.004
+    starts[2, :3, :3] = axis_rotation(np.array([0.0, 1.0, 0.0]), 0.05)
+    got, exact = (refine_point_to_plane(source, target, normals, starts, numpy_backend, 5, 0.02, index=index)
+                  for index in (None, _Exact(target)))
+    np.testing.assert_array_equal(got, exact)

@@ -68,7 +68,7 @@ class _Faulty:
         target = np.asarray(t)
 
         class Second:
-            def query(self, s):  # the second-nearest point for one source point, with its true distance
+            def query(self, s, within=None):  # the second-nearest point for one source point, its true distance
                 idx, d = index.query(s)
                 idx, d = idx.copy(), d.copy()
                 dists = np.linalg.norm(target - np.asarray(s)[-2], axis=1)
@@ -147,7 +147,7 @@ class _SlowFarAway:
         outer = np.linalg.norm(np.asarray(target), axis=1).max()
 
         class Index:
-            def query(self, source):
+            def query(self, source, within=None):
                 far = int((np.linalg.norm(np.asarray(source), axis=1) > 1.5 * outer).sum())
                 time.sleep(1e-5 * far)  # a far query sweeps most of the grid
                 return index.query(source)

@@ -17,12 +17,15 @@ import numpy as np
 class NearestIndex(Protocol):
     """A target point set prepared once (uploaded, gridded) for many queries."""
 
-    def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def query(self, source: np.ndarray, within: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """`nearest_neighbors(source, target)` for the prepared target.
 
         Parameters
         ----------
         source : (s, 3) float
+        within : optional reach: a source point farther than this from the target may come back
+            as (len(target), inf) instead of its nearest point (a k-d tree stops early; a
+            backend may as well answer exactly)
 
         Returns
         -------

@@ -193,14 +193,15 @@ class NearestIndex:
     def __init__(self, tree: cKDTree):
         self.tree = tree
 
-    def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def query(self, source: np.ndarray, within: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         src = np.asarray(source, np.float64).reshape(-1, 3)
         if len(src) == 0:
             return np.zeros(0, np.int32), np.zeros(0)
         if not np.isfinite(src).all():
             raise ValueError("nearest_neighbors: points with NaN or infinite coordinates")
         workers = query_threads() if len(src) >= 2048 else 1
-        dist, idx = self.tree.query(src, k=1, workers=workers)
+        dist, idx = self.tree.query(src, k=1, workers=workers,
+                                    distance_upper_bound=np.inf if within is None else float(within))
         return idx.astype(np.int32), dist
 
 

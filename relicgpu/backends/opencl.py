@@ -385,7 +385,8 @@ class OpenCLNearestIndex:
         self._counts, self._cells = None, 0  # per-cell counts, then the scatter's cursors
         self._occupied = None
 
-    def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def query(self, source: np.ndarray, within: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        # (exact everywhere: `within` would save a grid search little)
         be = self.be
         src = nn_source(source)
         ns = len(src)

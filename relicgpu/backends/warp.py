@@ -304,7 +304,8 @@ class WarpNearestIndex:
         self.grid = None  # (h, dims, starts, sorted points, sorted ids)
         self._counts = None  # per-cell counts, then the scatter's cursors
 
-    def query(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def query(self, source: np.ndarray, within: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        # (exact everywhere: `within` would save a grid search little)
         src = nn_source(source)
         if len(src) == 0:
             return np.zeros(0, np.int32), np.zeros(0)

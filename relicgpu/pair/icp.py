@@ -183,6 +183,16 @@ def _pair_weights(used: np.ndarray, idx: np.ndarray, weights: np.ndarray | None,
     return w
 
 
+def _trim_cutoff(dist: np.ndarray, trim: float, reject: float, floor: float) -> np.ndarray:
+    """(H,) each row's pair cutoff: 3x its `trim` quantile, within [floor, reject]. `dist` (H, N)
+    may hold inf for pairs beyond `reject` (`NearestIndex.query(within=reject)`): where the
+    quantile reads one, the cutoff is `reject`. The pairs used are those the exact distances
+    give: each nearer than reject lies below the quantile's order statistics then."""
+    with np.errstate(invalid="ignore"):
+        q = np.quantile(dist, trim, axis=1)
+    return np.maximum(floor, np.minimum(reject, np.where(np.isfinite(q), 3.0 * q, np.inf)))
+
+
 def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backend, iterations: int,
                 reject: float, floor: float, tolerance: float = 0.0, trim: float = 0.5,
                 index=None, weights: np.ndarray | None = None,
@@ -208,13 +218,16 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
     index = backend.nearest_index(target) if index is None else index  # one upload (and grid) for all rounds
     for _ in range(iterations):
         moved = np.matmul(source, np.swapaxes(poses[:, :3, :3], 1, 2)) + poses[:, None, :3, 3]
-        idx, dist = index.query(moved.reshape(-1, 3))
-        idx = np.asarray(idx, np.int64).reshape(h, n)
+        # a k-d tree stops early past `reject` (most points of a start far from the truth): such
+        # pairs come back (M, inf), weigh nothing, and leave every round as the exact distances do
+        idx, dist = index.query(moved.reshape(-1, 3), within=reject)
         dist = np.asarray(dist, np.float64).reshape(h, n)
-        cutoff = np.maximum(floor, np.minimum(reject, 3.0 * np.quantile(dist, trim, axis=1)))
+        idx = np.where(np.isfinite(dist), np.asarray(idx, np.int64).reshape(h, n), 0)
+        cutoff = _trim_cutoff(dist, trim, reject, floor)
         w = _pair_weights(dist < cutoff[:, None], idx, weights, target_weights)
         share = (dist < floor) @ point_weight / max(point_weight.sum(), 1e-12)
         wsum = np.maximum(w.sum(axis=1), 1e-12)
+        dist = np.where(w > 0, dist, 0.0)
         matched = target[idx]
         cs = np.matmul(w[:, None, :], moved)[:, 0] / wsum[:, None]
         ct = np.matmul(w[:, None, :], matched)[:, 0] / wsum[:, None]
@@ -265,9 +278,10 @@ def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals
         if len(live) == 0:
             break
         moved = np.matmul(source, np.swapaxes(poses[live, :3, :3], 1, 2)) + poses[live, None, :3, 3]
-        idx, dist = index.query(moved.reshape(-1, 3))
-        idx = np.asarray(idx, np.int64).reshape(len(live), n)
-        keep = _pair_weights(np.asarray(dist).reshape(len(live), n) < cutoff, idx, weights, target_weights)
+        idx, dist = index.query(moved.reshape(-1, 3), within=cutoff)  # (as in batched_icp)
+        dist = np.asarray(dist, np.float64).reshape(len(live), n)
+        idx = np.where(np.isfinite(dist), np.asarray(idx, np.int64).reshape(len(live), n), 0)
+        keep = _pair_weights(dist < cutoff, idx, weights, target_weights)
         enough = (keep > 0).sum(axis=1) >= 6
         q, nrm = target[idx], target_normals[idx]
         centre = moved.mean(axis=1, keepdims=True)
