@@ -146,9 +146,10 @@ def test_nearest_index_answers_every_query_like_nearest_neighbours(backend):
 
 def test_nearest_index_within_a_reach_is_exact_inside_it(backend):
     """`query(within=r)`: every point nearer than r as without it; a farther one either exact or
-    (len(target), inf), the k-d tree's early stop; on the reach itself and with r = 0 too."""
+    (len(target), inf), the k-d tree's early stop; on the reach itself and with r = 0 too. Sizes
+    past every backend's brute-force bound: the grid search stops at the reach."""
     rng = np.random.default_rng()
-    target = _sphere(rng, 3000)
+    target = _sphere(rng, 30000)
     index = backend.nearest_index(target)
     source = np.concatenate([_sphere(rng, 2000, 1.05), rng.normal(size=(2000, 3)) * 3, target[:5]])
     idx0, d0 = index.query(source)

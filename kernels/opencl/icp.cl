@@ -105,15 +105,17 @@ __kernel void grid_query(__global const float *queries, __global const int *quer
                          const float ox, const float oy, const float oz, const float h, const float inv_h,
                          const int dx, const int dy, const int dz,
                          __global const int *starts, __global const float *sorted_points,
-                         __global const int *sorted_ids, __global int *out_idx)
+                         __global const int *sorted_ids, const float reach2, __global int *out_idx)
 {
+    /* reach2: the squared reach, no point beyond it is looked for (3e38: none); NO_ID stays
+       where no point lies within it */
     const int t = get_global_id(0);
     if (t >= n) return;
     const int3 dims = (int3)(dx, dy, dz);
     const float3 origin = (float3)(ox, oy, oz);
     const float3 q = vload3(t, queries);
     const int3 c = cell_of(q, origin, inv_h, dims);
-    float best = 3.0e38f;
+    float best = reach2;
     int best_id = NO_ID;
     for (int r = 0;; ++r) {
         const int z0 = max(c.z - r, 0), z1 = min(c.z + r, dims.z - 1);
@@ -164,7 +166,7 @@ __kernel void grid_query(__global const float *queries, __global const int *quer
             if (ca[a] + r < da[a] - 1) { bound = fmin(bound, oa[a] + (float)(ca[a] + r + 1) * h - qa[a]); more = true; }
         }
         if (!more) break;
-        if (best_id != NO_ID && bound > 0.0f && best <= bound * bound) break;
+        if (bound > 0.0f && best <= bound * bound) break;
     }
     out_idx[query_ids[t]] = best_id;
 }
@@ -199,6 +201,7 @@ __kernel void exact_distance(__global const REAL *source, __global const REAL *t
 {
     const int t = get_global_id(0);
     if (t >= n) return;
+    if (idx[t] == NO_ID) { out[t] = (REAL)INFINITY; return; }  /* none within the query's reach */
     const REAL3 d = vload3(t, source) - vload3(idx[t], target);
     out[t] = sqrt(d.x * d.x + d.y * d.y + d.z * d.z);
 }

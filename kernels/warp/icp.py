@@ -128,13 +128,14 @@ def grid_query(
     starts: wp.array(dtype=wp.int32),
     sorted_points: wp.array(dtype=wp.vec3),
     sorted_ids: wp.array(dtype=wp.int32),
+    reach2: float,  # squared reach: no point beyond it is looked for (3e38: none)
     out_idx: wp.array(dtype=wp.int32),
 ):
     t = wp.tid()
     q = queries[t]
     c = cell_of(q, origin, inv_h, dims)
-    best = float(3.0e38)
-    best_id = int(2147483647)
+    best = reach2
+    best_id = int(2147483647)  # kept where no point lies within reach
     r = int(0)
     while True:
         z0 = wp.max(c[2] - r, 0)
@@ -191,7 +192,7 @@ def grid_query(
                 more = True
         if not more:
             break
-        if best_id != 2147483647 and bound > 0.0 and best <= bound * bound:
+        if bound > 0.0 and best <= bound * bound:
             break
         r += 1
     out_idx[query_ids[t]] = best_id
@@ -224,6 +225,9 @@ def exact_distance(
     out: wp.array(dtype=wp.float64),
 ):
     t = wp.tid()
+    if idx[t] == 2147483647:  # none within the query's reach (_prep.NO_POINT)
+        out[t] = wp.float64(wp.inf)
+        return
     d = source[t] - target[idx[t]]
     out[t] = wp.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
 

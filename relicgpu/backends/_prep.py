@@ -265,6 +265,24 @@ class LcsBatch:
 MAX_CELLS_PER_POINT = 4
 
 
+NO_POINT = 2147483647  # the grid search's index where no point lies within a query's reach
+
+
+def grid_reach2(within: float | None, extent: np.ndarray) -> float:
+    """The squared reach of a float32 grid search for `NearestIndex.query(within=)`: widened by
+    more than float32's rounding of coordinates shifted to the target's box (a point within
+    `within` is always found; one a little beyond may be too), 3e38 where there is none."""
+    if within is None:
+        return 3.0e38
+    reach = float(within) * (1 + 1e-5) + 1e-6 * (float(np.linalg.norm(extent)) + float(within))
+    return min(reach * reach, 3.0e38)
+
+
+def beyond_reach(idx: np.ndarray, n: int) -> np.ndarray:
+    """(s,) int32 indices of a grid search, NO_POINT (none within reach) as n, as a k-d tree gives."""
+    return np.where(idx == NO_POINT, np.int32(n), idx).astype(np.int32)
+
+
 def grid_dims(extent: np.ndarray, h: float) -> np.ndarray:
     return (np.floor(np.asarray(extent, np.float64) / h).astype(np.int64) + 1).astype(np.int64)
 

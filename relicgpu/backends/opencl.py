@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._prep import (LcsBatch, PpfVotes, centred_float32, check_edge_faces, check_faces, choose_cell_size,
-                    flag_intervals, grid_dims, nn_source, nn_target)
+from ._prep import (LcsBatch, PpfVotes, beyond_reach, centred_float32, check_edge_faces, check_faces,
+                    choose_cell_size, flag_intervals, grid_dims, grid_reach2, nn_source, nn_target)
 from .pocl import repair_pocl_cpu_name
 from .selfcheck import check_family
 
@@ -386,7 +386,6 @@ class OpenCLNearestIndex:
         self._occupied = None
 
     def query(self, source: np.ndarray, within: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        # (exact everywhere: `within` would save a grid search little)
         be = self.be
         src = nn_source(source)
         ns = len(src)
@@ -407,10 +406,11 @@ class OpenCLNearestIndex:
                 _, sorted_queries, query_ids = self._sort_into_cells(src32, ns, h)
                 be._run("icp.cl", "grid_query", ns, sorted_queries, query_ids, np.int32(ns), *self._o(),
                         np.float32(h), np.float32(1.0 / h), *[np.int32(d) for d in dims], starts, sorted_points,
-                        sorted_ids, idx)
+                        sorted_ids, np.float32(grid_reach2(within, self.extent)), idx)
             dist = be._empty(np.dtype(be.real).itemsize * ns)
             be._run("icp.cl", "exact_distance", ns, src_d, self.dst_d, idx, np.int32(ns), dist)
-            return be._from_device(idx, ns, np.int32), be._from_device(dist, ns, be.real).astype(np.float64)
+            return (beyond_reach(be._from_device(idx, ns, np.int32), self.n),
+                    be._from_device(dist, ns, be.real).astype(np.float64))
 
     def _o(self):
         return [np.float32(x) for x in self.origin]

@@ -146,21 +146,41 @@ def _check_lcs(be) -> str | None:
 
 def _check_nearest(be) -> str | None:
     source, target = _points()
-    size = np.linalg.norm(target.max(0) - target.min(0))
-    _, d_ref = ref.nearest_neighbors(source, target)
-    for what, (idx, d) in (("nearest_neighbors", be.nearest_neighbors(source, target)),
-                           ("nearest_index", be.nearest_index(target).query(source))):
-        idx = np.asarray(idx)
-        if idx.shape != d_ref.shape or idx.min() < 0 or idx.max() >= len(target):
+    big_source, big_target = _grid_points()  # past every backend's brute-force bound: its grid search
+    index = be.nearest_index(big_target)
+    reach = 0.3  # (a third of the gap between the surfaces' points, most sources beyond it)
+    for what, (idx, d), (s, t) in (("nearest_neighbors", be.nearest_neighbors(source, target), (source, target)),
+                                   ("nearest_index", be.nearest_index(target).query(source), (source, target)),
+                                   ("grid search", index.query(big_source), (big_source, big_target)),
+                                   ("grid search within reach", index.query(big_source, within=reach),
+                                    (big_source, big_target))):
+        size = np.linalg.norm(t.max(0) - t.min(0))
+        _, d_ref = ref.nearest_neighbors(s, t)
+        idx, d = np.asarray(idx), np.asarray(d)
+        if what.endswith("reach"):  # (len(t), inf) allowed past the reach only
+            out = ~np.isfinite(d)
+            if np.any(out & (d_ref < reach)) or np.any(idx[out] != len(t)):
+                return f"{what}: points within reach left out"
+            idx, d, d_ref, s = idx[~out], d[~out], d_ref[~out], s[~out]
+        if idx.shape != d_ref.shape or (len(idx) and (idx.min() < 0 or idx.max() >= len(t))):
             return f"{what}: indices out of range"
         bad = _disagreement(np.abs(d - d_ref) <= 1e-6 * size, d, d_ref)
         if bad:
             return f"{what} distances: " + bad
-        true_d = np.linalg.norm(source - target[idx], axis=1)
+        true_d = np.linalg.norm(s - t[idx], axis=1)
         bad = _disagreement(np.abs(true_d - d_ref) <= 1e-6 * size, true_d, d_ref)
         if bad:
             return f"{what} indices (not a nearest point): " + bad
     return None
+
+
+def _grid_points():
+    """6,000 targets on a sphere of radius 10 and 10,000 sources on and off it (60M pairs)."""
+    rng = np.random.default_rng(5)
+    target = rng.normal(size=(6000, 3))
+    target = 10.0 * target / np.linalg.norm(target, axis=1, keepdims=True)
+    source = target[rng.integers(0, 6000, 10000)] + rng.normal(size=(10000, 3)) * np.repeat([0.05, 3.0], 5000)[:, None]
+    return source + 50.0, target + 50.0
 
 
 def _check_covariance(be) -> str | None:

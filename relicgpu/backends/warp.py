@@ -13,8 +13,8 @@ import threading
 
 import numpy as np
 
-from ._prep import (LcsBatch, PpfVotes, centred_float32, check_edge_faces, check_faces, choose_cell_size,
-                    flag_intervals, grid_dims, nn_source, nn_target, parallel_copy)
+from ._prep import (LcsBatch, PpfVotes, beyond_reach, centred_float32, check_edge_faces, check_faces,
+                    choose_cell_size, flag_intervals, grid_dims, grid_reach2, nn_source, nn_target, parallel_copy)
 
 # Warp's CPU device runs a launch on one thread; brute force beats building a
 # grid below these many (source x target) pairs.
@@ -305,15 +305,14 @@ class WarpNearestIndex:
         self._counts = None  # per-cell counts, then the scatter's cursors
 
     def query(self, source: np.ndarray, within: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        # (exact everywhere: `within` would save a grid search little)
         src = nn_source(source)
         if len(src) == 0:
             return np.zeros(0, np.int32), np.zeros(0)
         with self.be._staging_lock:  # the staging buffers are reused once the results are back
-            idx, dist = self.query_device(self.be._upload_vec3d(src, "source"))
-            return idx.numpy(), dist.numpy()
+            idx, dist = self.query_device(self.be._upload_vec3d(src, "source"), within)
+            return beyond_reach(idx.numpy(), self.n), dist.numpy()
 
-    def query_device(self, src_d):
+    def query_device(self, src_d, within: float | None = None):
         be, wp, k = self.be, self.be.wp, self.be._k_icp
         ns = src_d.shape[0]
         src32 = wp.empty(ns, dtype=wp.vec3, device=be.device)
@@ -327,7 +326,7 @@ class WarpNearestIndex:
             h, dims, starts, sorted_points, sorted_ids = self.grid
             _, sorted_queries, query_ids = self._sort_into_cells(src32, h)
             be._launch(k.grid_query, ns, [sorted_queries, query_ids, wp.vec3(*self.origin), float(h), 1.0 / h, dims,
-                                          starts, sorted_points, sorted_ids, idx])
+                                          starts, sorted_points, sorted_ids, grid_reach2(within, self.extent), idx])
         dist = wp.empty(ns, dtype=wp.float64, device=be.device)
         be._launch(k.exact_distance, ns, [src_d, self.dst_d, idx, dist])
         return idx, dist
