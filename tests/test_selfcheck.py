@@ -239,3 +239,16 @@ def test_pocl_16_wide_masks_are_refused_where_wrong_and_8_wide_chosen(tmp_path):
     assert "values wrong" in out["forced"]
     assert "16" in out["refused"] and "-DRELIC_VECTOR_MASKS=16" not in out["chosen"]
     assert all(why is None for why in out["chosen_check"].values())
+
+
+def test_auto_takes_numpy_or_a_gpu_backend_and_leaves_the_cpu_kernels_to_be_named(monkeypatch):
+    """On a CPU an assembly forks a numpy worker per core: a CPU kernel that probes faster is
+    still not `auto`'s pick; a GPU backend that probes faster is."""
+    from types import SimpleNamespace
+
+    kinds = {"numpy": "cpu", "warp-cpu": "cpu", "opencl:PoCL": "cpu", "warp-cuda:0": "cuda", "opencl:GPU": "gpu"}
+    monkeypatch.setattr(backends, "get_backend", lambda name: SimpleNamespace(kind=kinds[name]))
+    assert backends.auto_choice({"numpy": 0.03, "warp-cpu": 0.01, "opencl:PoCL": 0.02}) == "numpy"
+    assert backends.auto_choice({"numpy": 0.03, "warp-cpu": 0.01, "warp-cuda:0": 0.02}) == "warp-cuda:0"
+    assert backends.auto_choice({"numpy": 0.03, "opencl:GPU": 0.005, "warp-cuda:0": 0.004}) == "warp-cuda:0"
+    assert backends.auto_choice({"numpy": 0.01, "opencl:GPU": 0.05}) == "numpy"

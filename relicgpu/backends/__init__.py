@@ -175,11 +175,20 @@ def probe_times() -> dict[str, float]:
     return {name: times[name] for name in names}
 
 
+def auto_choice(times: dict[str, float]) -> str:
+    """`auto`'s pick from measured probe times: the fastest of numpy and the GPU backends. The
+    CPU kernels (warp-cpu, PoCL) are used where asked for by name: on a CPU an assembly forks a
+    numpy worker per core (`heap.engines`), where they run in one process with the host code on
+    one core, and within the search's reach the k-d tree keeps up with their grid search."""
+    eligible = [name for name in times
+                if name == "numpy" or getattr(get_backend(name), "kind", "cpu") in ("cuda", "gpu")]
+    return min(eligible, key=lambda name: times[name])
+
+
 @functools.lru_cache(maxsize=None)
 def fastest_backend() -> str:
-    """The available backend with the shortest measured probe (warm, compile excluded)."""
-    times = probe_times()
-    return min(times, key=lambda name: times[name])
+    """`auto`: `auto_choice` of the available backends' measured probes (warm, compile excluded)."""
+    return auto_choice(probe_times())
 
 
 def resolve(name: str | Backend | None = "auto") -> Backend:

@@ -5,7 +5,7 @@ import json
 import os
 import sys
 
-from . import (BackendError, BackendRefused, candidate_backends, fastest_backend, get_backend, probe_times,
+from . import (BackendError, BackendRefused, auto_choice, candidate_backends, fastest_backend, get_backend, probe_times,
                selfcheck_results)
 
 
@@ -46,7 +46,7 @@ def cli_main(args) -> int:
     times = {} if args.no_probe else probe_times()
     for r in rows:
         r["probe_s"] = times.get(r["name"])
-    auto = None if args.no_probe else min(times, key=lambda n: times[n])
+    auto = None if args.no_probe else auto_choice(times)
     if not args.no_probe:
         fastest_backend.cache_clear()
     env = os.environ.get("RELICGPU_BACKEND") or None
