@@ -155,6 +155,9 @@ class Params:
     # its fit at least rim_priority; None: off) weighs forest.RIM_WEIGHT more in the assembly
     # graph (docs/benchmarks.md, "Matches whose outlines agree are joined first")
     rim_priority: float | None = 0.15
+    # assembly: fragments and groups no pairwise match placed are matched against the merged
+    # surface of each placed group they are candidates of (`heap.grow`)
+    grow_groups: bool = True
 
     def with_(self, **changes) -> "Params":
         return replace(self, **changes)

@@ -194,7 +194,7 @@ def run(args) -> dict:
     multi_faces = args.multi_faces or preset["multi_faces"]
     params = with_segmentations(Params(), args.segmentation, args.second_segmentation).with_(**args.set)
     backend = resolve(args.backend)
-    plan = [(fam, seed, 2) for fam in families for seed in seeds]
+    plan = [(fam, seed, 2) for fam in families for seed in seeds] if args.two_piece else []
     plan += [(fam, seed, p) for fam in families for seed in seeds for p in pieces]
     plan += [(name, seed, None) for name in realdata for seed in seeds[:1]]
     cases = []
@@ -319,6 +319,8 @@ def main(argv=None) -> int:
     ap.add_argument("--multi-faces", type=int, help="faces a piece of multi-piece objects (quick 800, full 2000)")
     ap.add_argument("--backend", default="numpy", help="numpy, warp-cpu, ... (default numpy)")
     ap.add_argument("--workers", type=int, default=1, help="assemble's local workers (default 1)")
+    ap.add_argument("--two-piece", action=argparse.BooleanOptionalAction, default=True,
+                    help="the two-piece objects of each family and seed (default: yes)")
     ap.add_argument("--quick", action="store_true", help="one seed, small pieces, no realdata assembly")
     ap.add_argument("--realdata-assemble", action=argparse.BooleanOptionalAction, default=None,
                     help="assemble the 20-piece realdata sets (default: not in --quick)")

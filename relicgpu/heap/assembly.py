@@ -5,6 +5,7 @@
          -> top-k partners per fragment -> match_pair           (engine jobs, cached per pair)
          -> spanning forest of verified matches, best first,
             refusing merges that interpenetrate or break a closed loop
+         -> what stayed apart matched against the merged placed groups (`grow`)
          -> joint refinement (ICP of each fragment against all its placed neighbours)
          -> assembly.json, assembly.glb, merged.stl
 
@@ -37,6 +38,7 @@ from ..io.fragment import Fragment, FragmentError
 from ..io.load import Batch, read_batch
 from .cache import Cache, fragment_hash
 from .forest import Edge, grow_forest, refine_poses, rim_first
+from .grow import grow_groups
 from .outputs import closed_solid, write_outputs
 from .screen import SCREEN_LCS_WEIGHT, _ppf_screen_job, _screen_blocks, normalised_support, screen, select_candidates
 from ..params import Params
@@ -311,24 +313,34 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
         bar.close()
         timings["match"] = time.perf_counter() - t0
         stats["errors"] = errors
+
+        # 4. the assembly graph
+        t0 = time.perf_counter()
+        edges = [Edge(i, j, np.asarray(d["transform"], np.float64), float(d["score"]))
+                 for (i, j), d in sorted(docs.items()) if d["accepted"]]
+        samples = [p.sample for p in prepared]
+        weighed = rim_first(edges, samples, params, scale, be)  # matches whose outlines agree first
+        first = {(e.a, e.b) for e, w in zip(edges, weighed) if w.score > e.score}
+        edges = weighed
+        joined = sorted({k for e in edges for k in (e.a, e.b)})
+        solids = [closed_solid(fragments[i]) if i in joined or params.grow_groups else None for i in range(n)]
+        pose, group, notes = grow_forest(n, edges, samples, params, scale, be, solids)
+        for key in first:
+            notes[key] += " (its rims meet the partner's creases: weighed first)"
+        used = [e for e in edges if notes[(e.a, e.b)].startswith("used")]
+        timings["assemble"] = time.perf_counter() - t0
+
+        # 5. what stayed apart, matched against the placed groups
+        t0 = time.perf_counter()
+        joins = []
+        if params.grow_groups:
+            joins, grown = grow_groups(fragments, prepared, pose, group, candidates, samples, solids, params, scale,
+                                       be, eng, show)
+            stats.update(grown)
+        timings["grow"] = time.perf_counter() - t0
     finally:
         eng.close()
-
-    # 4. the assembly graph
-    t0 = time.perf_counter()
-    edges = [Edge(i, j, np.asarray(d["transform"], np.float64), float(d["score"]))
-             for (i, j), d in sorted(docs.items()) if d["accepted"]]
-    samples = [p.sample for p in prepared]
-    weighed = rim_first(edges, samples, params, scale, be)  # matches whose outlines agree first
-    first = {(e.a, e.b) for e, w in zip(edges, weighed) if w.score > e.score}
-    edges = weighed
-    joined = sorted({k for e in edges for k in (e.a, e.b)})
-    solids = [closed_solid(fragments[i]) if i in joined else None for i in range(n)]
-    pose, group, notes = grow_forest(n, edges, samples, params, scale, be, solids)
-    for key in first:
-        notes[key] += " (its rims meet the partner's creases: weighed first)"
-    used = [e for e in edges if notes[(e.a, e.b)].startswith("used")]
-    timings["assemble"] = time.perf_counter() - t0
+    used += [e for e, _, _ in joins]
     t0 = time.perf_counter()
     pose = refine_poses(pose, group, used, samples)
     timings["refine"] = time.perf_counter() - t0
@@ -336,6 +348,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     names = [f.name for f in fragments]
     poses, groups = _finish_groups(pose, group)
     matches = [_record(e.a, e.b, docs[(e.a, e.b)], notes[(e.a, e.b)]) for e in edges]
+    matches += [_record(e.a, e.b, _pair_doc(m) | {"transform": e.transform.tolist()}, note) for e, m, note in joins]
     rejected = [_record(i, j, d, f"not verified: {d['reason']}") for (i, j), d in sorted(docs.items())
                 if not d["accepted"]]
     stats.update(accepted=len(edges), rims_first=len(first), used=len(used), cache_hits=cache.hits,

@@ -209,7 +209,7 @@ def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float
         if rival > agree:
             notes[(e.a, e.b)] = "refused: other matches between the two groups agree on another placement"
             continue
-        clash = _first_clash(members[ga], members[gb], pose, move, samples, params, scale, backend, solids, memo)
+        clash = first_clash(members[ga], members[gb], pose, move, samples, params, scale, backend, solids, memo)
         if clash is not None:
             p, q, what = clash
             notes[(e.a, e.b)] = f"refused: fragments {p} and {q} would interpenetrate ({what})"
@@ -222,7 +222,7 @@ def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float
     return pose, group, notes
 
 
-def _first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Params, scale: float, backend,
+def first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Params, scale: float, backend,
                  solids: list, memo: dict | None = None):
     """The first pair (p in ga, q in gb) that interpenetrates after gb moves by `move`, with a note
     (memo: verdicts kept by pair and relative placement, for forests grown again)."""
