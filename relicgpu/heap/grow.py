@@ -156,7 +156,7 @@ def grow_groups(fragments: list[Fragment], prepared: list, pose: list, group: li
                 group[q] = gb
             a, q = _nearest_members(big, small, pose, samples, reach)
             note = (f"used: joined against the merged surface of {len(big)} placed fragments "
-                    f"(no pairwise match placed {'it' if len(small) == 1 else 'its group'})")
+                    f"(no pairwise match placed {'it' if len(small) == 1 else 'its group'}; {m.reason})")
             joins.append((Edge(a, q, invert(pose[a]) @ pose[q], score), m, note))
             stats["grow_joined"] += 1
             grew = True
@@ -166,14 +166,16 @@ def grow_groups(fragments: list[Fragment], prepared: list, pose: list, group: li
 
 
 def _nearest_members(big: tuple, small: tuple, pose: list, samples: list, reach: float) -> tuple[int, int]:
-    """The member of each group that touch most (fracture points of one near the other's surface)."""
+    """The member of each group that touch most (fracture points of one near the other's)."""
     best, pair = -1, (big[0], small[0])
     for q in small:
         pts = apply(pose[q], samples[q].fracture)
         if not len(pts):
             continue
         for a in big:
-            d, _ = cKDTree(apply(pose[a], samples[a].surface)).query(pts, distance_upper_bound=reach)
+            if not len(samples[a].fracture):
+                continue
+            d, _ = cKDTree(apply(pose[a], samples[a].fracture)).query(pts, distance_upper_bound=reach)
             count = int(np.sum(d <= reach))
             if count > best:
                 best, pair = count, (a, q)
