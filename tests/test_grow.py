@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from relicgpu.heap.assembly import common_scale
+from relicgpu.heap.cache import Cache, fragment_hash
 from relicgpu.heap.engines import LocalEngine
 from relicgpu.heap.grow import merged_fragment, grow_groups
 from relicgpu.heap.outputs import closed_solid
@@ -64,14 +65,15 @@ def test_a_rescanned_piece_joins_its_placed_group_and_a_stranger_stays_apart():
     v = obj.fragments[loose].vertices
     gap = (v @ pose[loose][:3, :3].T + pose[loose][:3, 3]) - (v @ obj.poses[loose][:3, :3].T + obj.poses[loose][:3, 3])
     assert np.sqrt(np.mean(np.sum(gap ** 2, axis=1))) < 0.01 * obj.params["size"]
-    edge, match, note = joins[0]
-    assert edge.b == loose and match.accepted and note.startswith("used: joined against the merged surface")
+    edge, doc, note = joins[0]
+    assert edge.b == loose and doc["accepted"] and note.startswith("used: joined against the merged surface")
     np.testing.assert_allclose(pose[edge.a] @ edge.transform, pose[loose], atol=1e-9)
     assert stats["grow_tried"] >= 2  # the stranger was tried too, and refused
 
 
-def test_a_group_is_not_tried_twice_in_the_same_composition():
-    """Nothing joins: each pair of groups is matched once, then the rounds stop."""
+def test_a_group_is_tried_once_in_a_composition_and_kept_in_the_cache(tmp_path):
+    """Nothing joins: each pair of groups is matched once, then the rounds stop; run again on the
+    same cache, the match is read back, not made again."""
     calls = []
 
     class Counting(LocalEngine):
@@ -85,9 +87,12 @@ def test_a_group_is_not_tried_twice_in_the_same_composition():
     params = Params()
     scale = common_scale(fragments, params)
     prepared = [prepare(f, params, ref, scale=scale) for f in fragments]
-    pose = [np.array(obj.poses[0]), np.array(obj.poses[1]), np.eye(4)]
-    group = [0, 0, 2]
-    joins, stats = grow_groups(fragments, prepared, pose, group, [(0, 2), (1, 2)], [p.sample for p in prepared],
-                               [None] * 3, params, scale, ref, Counting(1))
-    assert joins == [] and calls == [1] and stats["grow_tried"] == 1
-    assert group == [0, 0, 2]
+    cache = Cache(tmp_path, params, scale, ref.name)
+    hashes = [fragment_hash(f) for f in fragments]
+    for run in range(2):
+        pose = [np.array(obj.poses[0]), np.array(obj.poses[1]), np.eye(4)]
+        group = [0, 0, 2]
+        joins, stats = grow_groups(fragments, prepared, pose, group, [(0, 2), (1, 2)], [p.sample for p in prepared],
+                                   [None] * 3, params, scale, ref, Counting(1), cache=cache, hashes=hashes)
+        assert joins == [] and stats["grow_tried"] == 1 and group == [0, 0, 2]
+    assert calls == [1, 0] and cache.writes == 1 and cache.hits == 1

@@ -5,7 +5,7 @@
          -> top-k partners per fragment -> match_pair           (engine jobs, cached per pair)
          -> spanning forest of verified matches, best first,
             refusing merges that interpenetrate or break a closed loop
-         -> what stayed apart matched against the merged placed groups (`grow`)
+         -> what stayed apart matched against the merged placed groups (`grow`; cached per group pair)
          -> joint refinement (ICP of each fragment against all its placed neighbours)
          -> assembly.json, assembly.glb, merged.stl
 
@@ -45,6 +45,7 @@ from ..params import Params
 from ..pair.icp import invert
 from ..pair.pipeline import match_pair
 from ..pair.prepare import prepare, with_fragment
+from ..pair.result import failed_doc
 
 # Screening: each fragment keeps its TOP_K best partners by screening score; a pair
 # is matched in full when it is among the top k of either fragment (see docs/design.md).
@@ -140,20 +141,11 @@ def _match_job(payload, *prepared):
     for i, j in pairs:
         try:
             m = match_pair(by_index[i], by_index[j], params, be, scale=scale)
-            doc = _pair_doc(m)
+            doc = m.doc()
         except Exception as exc:  # one bad pair must not sink a run of thousands; reported, not cached
-            doc = {"accepted": False, "transform": np.eye(4).tolist(), "score": 0.0, "rmse": float("inf"),
-                   "overlap": 0.0, "penetration": 0.0, "reason": f"error: {type(exc).__name__}: {exc}",
-                   "error": True, "timings": {}}
+            doc = failed_doc(exc)
         out.append((i, j, doc))
     return out
-
-
-def _pair_doc(m) -> dict:
-    return {"accepted": bool(m.accepted), "transform": np.asarray(m.transform, np.float64).tolist(),
-            "score": float(m.score), "rmse": float(m.rmse), "overlap": float(m.overlap),
-            "penetration": float(m.penetration), "contour_a": int(m.contour_a), "contour_b": int(m.contour_b),
-            "reason": m.reason, "timings": {k: float(v) for k, v in m.timings.items()}}
 
 
 # --- the whole job -----------------------------------------------------------------
@@ -335,7 +327,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
         joins = []
         if params.grow_groups:
             joins, grown = grow_groups(fragments, prepared, pose, group, candidates, samples, solids, params, scale,
-                                       be, eng, show)
+                                       be, eng, show, cache, hashes)
             stats.update(grown)
         timings["grow"] = time.perf_counter() - t0
     finally:
@@ -348,7 +340,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     names = [f.name for f in fragments]
     poses, groups = _finish_groups(pose, group)
     matches = [_record(e.a, e.b, docs[(e.a, e.b)], notes[(e.a, e.b)]) for e in edges]
-    matches += [_record(e.a, e.b, _pair_doc(m) | {"transform": e.transform.tolist()}, note) for e, m, note in joins]
+    matches += [_record(e.a, e.b, doc | {"transform": e.transform.tolist()}, note) for e, doc, note in joins]
     rejected = [_record(i, j, d, f"not verified: {d['reason']}") for (i, j), d in sorted(docs.items())
                 if not d["accepted"]]
     stats.update(accepted=len(edges), rims_first=len(first), used=len(used), cache_hits=cache.hits,

@@ -9,10 +9,11 @@ its members touch one another (within `JOINED` contact distances of another memb
 remains is the group's skin and its free break; it is prepared and matched like any fragment
 (`match_pair`, the same verification), and a fit is used only where it interpenetrates no member
 (`forest.first_clash`). Rounds go on while a group grows; a pair of groups is matched once for
-each of their compositions.
+each of their compositions, and the match is cached by the members' contents and poses.
 """
 from __future__ import annotations
 
+import hashlib
 import sys
 
 import numpy as np
@@ -24,6 +25,7 @@ from ..io.fragment import Fragment, is_cloud
 from ..pair.icp import apply, invert
 from ..pair.pipeline import match_pair
 from ..pair.prepare import prepare, with_fragment
+from ..pair.result import failed_doc
 from ..params import Params
 from .engines import Job
 from .forest import Edge, first_clash
@@ -68,30 +70,43 @@ def merged_fragment(fragments: list[Fragment], members: list[int], pose: list, r
 
 def _grow_job(payload, big, small):
     """Match a merged group (or one fragment) onto a larger group; payload = (trial, params, backend, scale)."""
-    key, params, backend_name, scale = payload
+    trial, params, backend_name, scale = payload
     try:
-        return key, match_pair(big, small, params, resolve(backend_name), scale=scale)
+        return trial, match_pair(big, small, params, resolve(backend_name), scale=scale).doc()
     except Exception as exc:  # one bad group must not sink the assembly; reported in the stats
-        return key, f"error: {type(exc).__name__}: {exc}"
+        return trial, failed_doc(exc)
+
+
+def group_key(members: tuple, pose: list, hashes: list[str]) -> str:
+    """A group's cache key: its members' contents and their poses in its frame."""
+    h = hashlib.sha256()
+    for i in members:
+        h.update(hashes[i].encode())
+        h.update(np.ascontiguousarray(pose[i], np.float64).tobytes())
+    return h.hexdigest()[:32]
 
 
 def grow_groups(fragments: list[Fragment], prepared: list, pose: list, group: list[int], candidates: list,
                 samples: list, solids: list, params: Params, scale: float, backend, engine,
-                progress: bool = False) -> tuple[list[tuple[Edge, object, str]], dict]:
+                progress: bool = False, cache=None, hashes: list[str] | None = None
+                ) -> tuple[list[tuple[Edge, dict, str]], dict]:
     """Join groups to placed groups by matching them whole (see the module docstring).
 
     `pose` and `group` (as `forest.grow_forest` returns them) are updated in place. Two groups are
     tried when a candidate pair links them and the larger has at least two members; meshes only.
-    Returns the edges that record each join (a member of the larger group, the nearest member of
-    the joined one, and their relative transform) with the match and a note, and counts.
+    cache, hashes: the assembly's `Cache` and fragment hashes (each group match is kept there by
+    `group_key`, as a pair's match is). Returns the edges that record each join (a member of the
+    larger group, the nearest member of the joined one, and their relative transform) with the
+    match's record and a note, and counts.
     """
     n = len(fragments)
     reach = JOINED * params.contact_distance * scale
     linked = {(min(i, j), max(i, j)) for i, j in candidates}
+    use_cache = cache is not None and hashes is not None
     tried: set = set()
     joins: list = []
     stats = {"grow_tried": 0, "grow_joined": 0, "grow_errors": 0}
-    cache: dict = {}  # merged and prepared groups by their members (poses are fixed within a group)
+    merged: dict = {}  # merged and prepared groups by their members (poses are fixed within a group)
 
     def members_of() -> dict[int, tuple]:
         out: dict[int, list] = {}
@@ -102,10 +117,10 @@ def grow_groups(fragments: list[Fragment], prepared: list, pose: list, group: li
     def prepared_group(m: tuple):
         if len(m) == 1 and np.allclose(pose[m[0]], np.eye(4)):
             return prepared[m[0]]
-        if m not in cache:
+        if m not in merged:
             frag = merged_fragment(fragments, list(m), pose, reach)
-            cache[m] = with_fragment(prepare(frag, params, backend, scale=scale, with_second=True), frag)
-        return cache[m]
+            merged[m] = with_fragment(prepare(frag, params, backend, scale=scale, with_second=True), frag)
+        return merged[m]
 
     for _ in range(n):
         members = members_of()
@@ -124,30 +139,44 @@ def grow_groups(fragments: list[Fragment], prepared: list, pose: list, group: li
                 trials.append((big, small, gb, gs))
         if not trials:
             break
-        objects = {}
-        for big, small, _, _ in trials:
-            objects[big], objects[small] = prepared_group(big), prepared_group(small)
+        keys = {t: (group_key(t[0], pose, hashes), group_key(t[1], pose, hashes)) if use_cache else None
+                for t in trials}
         found = []
-        bar = tqdm(total=len(trials), desc="grow groups", unit="match", file=sys.stderr, disable=not progress,
+
+        def took(trial, doc, fresh=True):
+            stats["grow_tried"] += 1
+            if doc.get("error"):
+                stats["grow_errors"] += 1
+            elif fresh and use_cache:
+                cache.put_pair(*keys[trial], doc)
+            if doc["accepted"]:
+                found.append((float(doc["score"]), trial, doc))
+
+        todo = []
+        for t in trials:
+            doc = cache.get_pair(*keys[t]) if use_cache else None
+            if doc is None:
+                todo.append(t)
+            else:
+                took(t, doc, fresh=False)
+        objects = {}
+        for big, small, _, _ in todo:
+            objects[big], objects[small] = prepared_group(big), prepared_group(small)
+        bar = tqdm(total=len(todo), desc="grow groups", unit="match", file=sys.stderr, disable=not progress,
                    leave=False, dynamic_ncols=True)
 
-        def took(job, result):
-            key, m = result
-            stats["grow_tried"] += 1
-            if isinstance(m, str):
-                stats["grow_errors"] += 1
-            elif m.accepted:
-                found.append((float(m.score), key, m))
+        def took_job(job, result):
+            took(*result)
             bar.update(1)
 
-        engine.map(_grow_job, [Job((t, params, backend.name, scale), t[:2]) for t in trials], objects, took)
+        engine.map(_grow_job, [Job((t, params, backend.name, scale), t[:2]) for t in todo], objects, took_job)
         bar.close()
         grew = False
-        for score, (big, small, gb, gs), m in sorted(found, key=lambda t: (-t[0], t[1])):
+        for score, (big, small, gb, gs), doc in sorted(found, key=lambda t: (-t[0], t[1])):
             if any(group[i] != gb for i in big) or any(group[i] != gs for i in small):
                 continue  # one of the two joined another group earlier in this round: its frame moved
             big_now = [i for i in range(n) if group[i] == gb]
-            move = m.transform  # small's group frame -> big's group frame
+            move = np.asarray(doc["transform"], np.float64)  # small's group frame -> big's group frame
             clash = first_clash(big_now, list(small), pose, move, samples, params, scale, backend, solids)
             if clash is not None:
                 continue
@@ -156,8 +185,8 @@ def grow_groups(fragments: list[Fragment], prepared: list, pose: list, group: li
                 group[q] = gb
             a, q = _nearest_members(big, small, pose, samples, reach)
             note = (f"used: joined against the merged surface of {len(big)} placed fragments "
-                    f"(no pairwise match placed {'it' if len(small) == 1 else 'its group'}; {m.reason})")
-            joins.append((Edge(a, q, invert(pose[a]) @ pose[q], score), m, note))
+                    f"(no pairwise match placed {'it' if len(small) == 1 else 'its group'}; {doc['reason']})")
+            joins.append((Edge(a, q, invert(pose[a]) @ pose[q], score), doc, note))
             stats["grow_joined"] += 1
             grew = True
         if not grew:

@@ -20,6 +20,14 @@ class PairMatch:
     reason: str
     timings: dict = field(default_factory=dict)
 
+    def doc(self) -> dict:
+        """The record an assembly caches and reports (no correspondences)."""
+        return {"accepted": bool(self.accepted), "transform": np.asarray(self.transform, np.float64).tolist(),
+                "score": float(self.score), "rmse": float(self.rmse), "overlap": float(self.overlap),
+                "penetration": float(self.penetration), "contour_a": int(self.contour_a),
+                "contour_b": int(self.contour_b), "reason": self.reason,
+                "timings": {k: float(v) for k, v in self.timings.items()}}
+
     def to_dict(self) -> dict:
         return {
             "accepted": bool(self.accepted), "transform": self.transform.tolist(), "score": float(self.score),
@@ -28,3 +36,10 @@ class PairMatch:
             "correspondences": self.correspondences.tolist(), "reason": self.reason,
             "timings": {k: round(float(v), 6) for k, v in self.timings.items()},
         }
+
+
+def failed_doc(exc: BaseException) -> dict:
+    """The record of a match that raised: not accepted, with the error as its reason (not cached)."""
+    return {"accepted": False, "transform": np.eye(4).tolist(), "score": 0.0, "rmse": float("inf"),
+            "overlap": 0.0, "penetration": 0.0, "reason": f"error: {type(exc).__name__}: {exc}",
+            "error": True, "timings": {}}
