@@ -136,6 +136,9 @@ def _assemble_main(args) -> int:
     log(f"{s['fragments']} fragments, {s['contours']} contours; backend {result.backend}, engine {result.engine}")
     log(f"screened {s['pairs']} pairs, matched {s['candidates']} ({s['pairs_from_cache']} from cache), "
         f"{s['accepted']} verified, {s['used']} used")
+    if s.get("grow_tried"):
+        log(f"{s['grow_joined']} of {s['grow_tried']} fragments or groups left apart joined a placed group "
+            f"when matched against its merged surface")
     sizes = sorted((len(m) for m in result.group_members().values() if len(m) > 1), reverse=True)
     log(f"{s['placed']} fragments placed in {len(sizes)} group(s) of sizes {sizes}; "
         f"{s['fragments'] - s['placed']} unplaced")
