@@ -7,9 +7,10 @@ start, or its contact too small to verify (docs/benchmarks.md). Against a placed
 break meets all its placed neighbours at once. The group's merged mesh leaves out the faces where
 its members touch one another (within `JOINED` contact distances of another member), so that what
 remains is the group's skin and its free break; it is prepared and matched like any fragment
-(`match_pair`, the same verification), and a fit is used only where it interpenetrates no member
-(`forest.first_clash`). Rounds go on while a group grows; a pair of groups is matched once for
-each of their compositions, and the match is cached by the members' contents and poses.
+(`match_pair`, the same verification but for interpenetration, `UNCHECKED`), and a fit is used
+only where it interpenetrates no whole member (`forest.first_clash`). Rounds go on while a group
+grows; a pair of groups is matched once for each of their compositions, and the match is cached
+by the members' contents and poses.
 """
 from __future__ import annotations
 
