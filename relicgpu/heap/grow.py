@@ -203,16 +203,14 @@ def grow_groups(fragments: list[Fragment], prepared: list, pose: list, group: li
 
 def _nearest_members(big: tuple, small: tuple, pose: list, samples: list, reach: float) -> tuple[int, int]:
     """The member of each group that touch most (fracture points of one near the other's)."""
+    trees = {a: cKDTree(apply(pose[a], samples[a].fracture)) for a in big if len(samples[a].fracture)}
     best, pair = -1, (big[0], small[0])
     for q in small:
         pts = apply(pose[q], samples[q].fracture)
         if not len(pts):
             continue
-        for a in big:
-            if not len(samples[a].fracture):
-                continue
-            d, _ = cKDTree(apply(pose[a], samples[a].fracture)).query(pts, distance_upper_bound=reach)
-            count = int(np.sum(d <= reach))
+        for a, tree in trees.items():
+            count = int(np.sum(tree.query(pts, distance_upper_bound=reach)[0] <= reach))
             if count > best:
                 best, pair = count, (a, q)
     return pair
