@@ -158,6 +158,12 @@ class Params:
     # assembly: fragments and groups no pairwise match placed are matched against the merged
     # surface of each placed group they are candidates of (`heap.grow`)
     grow_groups: bool = True
+    # assembly: two groups of at least two fragments each that look like pieces of different
+    # objects (the mean, over their fragment pairs, of `heap.grouping`'s p(one object) under this)
+    # are not joined: a wrong match between two objects of a mixed heap has nothing else to
+    # contradict it. Under every single object's least such mean (0.073, the Blender cube;
+    # docs/benchmarks.md, "Mixed heaps: groups that look like two objects"); None: not asked
+    apart_below: float | None = 0.05
 
     def with_(self, **changes) -> "Params":
         return replace(self, **changes)

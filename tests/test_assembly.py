@@ -15,7 +15,8 @@ import pytest
 import trimesh
 
 from relicgpu import synth
-from relicgpu.heap.forest import CLASH_THICKNESS, Edge, _inv, grow_forest, overlap_volume, penetration, refine_poses
+from relicgpu.heap.forest import (APART_NOTE, CLASH_THICKNESS, Edge, _inv, grow_forest, overlap_volume, penetration,
+                                  refine_poses)
 from relicgpu.heap.assembly import _finish_groups, assemble
 from relicgpu.heap.outputs import closed_solid
 from relicgpu.heap.screen import lcs_lengths_bitparallel, screen, select_candidates
@@ -189,6 +190,28 @@ def test_forest_refuses_interpenetration_and_a_disagreeing_loop(broken):
     s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching,
               [(e.a, e.b, e.transform) for e in others])
     assert s.part_accuracy == 1.0
+
+
+def test_forest_keeps_apart_groups_that_look_like_two_objects(broken):
+    # true matches, the halves {0, 1} and {2, 3} joined first; the descriptors call the halves two
+    # objects (p(one object) 0.01 between them): the right matches across are refused, and no
+    # tree edge is dropped for it. One fragment alone is never told apart (its descriptors mislead)
+    samples, n, scale = truth_samples(broken), len(broken.fragments), scale_of(broken.fragments)
+    assert sorted(broken.touching) == [(0, 1), (0, 3), (1, 2), (1, 3), (2, 3)]
+    rel = {(i, j): _inv(broken.poses[i]) @ broken.poses[j] for i, j in broken.touching}
+    halves = {0: 0, 1: 0, 2: 1, 3: 1}
+    edges = [Edge(i, j, t, 0.9 if halves[i] == halves[j] else 0.5) for (i, j), t in rel.items()]
+    p = np.array([[0.9 if halves[i] == halves[j] else 0.01 for j in range(n)] for i in range(n)])
+    _, group, notes = grow_forest(n, edges, samples, Params(), scale, ref, same_object=p)
+    assert group[0] == group[1] != group[2] == group[3], notes
+    assert all(notes[k].startswith(APART_NOTE) for k in [(0, 3), (1, 2), (1, 3)]), notes
+    assert "0.01 under 0.05" in notes[(0, 3)] + notes[(1, 2)] + notes[(1, 3)]
+    _, group, notes = grow_forest(n, edges, samples, Params(apart_below=None), scale, ref, same_object=p)
+    assert len(set(group)) == 1 and all(v.startswith("used") for v in notes.values()), notes
+    alone = np.where((np.arange(n)[:, None] == 0) != (np.arange(n)[None, :] == 0), 0.01, 0.9)
+    first = [Edge(i, j, t, 0.5 if 0 in (i, j) else 0.9) for (i, j), t in rel.items()]
+    _, group, notes = grow_forest(n, first, samples, Params(), scale, ref, same_object=alone)
+    assert len(set(group)) == 1, notes
 
 
 @pytest.mark.parametrize("recovery", [True, False])

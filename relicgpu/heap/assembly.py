@@ -34,10 +34,12 @@ import numpy as np
 from ..backends import resolve
 from .engines import Job, make_engine
 from ..io.files import atomic_write_bytes
-from ..io.fragment import Fragment, FragmentError
+from ..io.fragment import Fragment, FragmentError, is_cloud
 from ..io.load import Batch, read_batch
 from .cache import Cache, fragment_hash
-from .forest import Edge, grow_forest, refine_poses, rim_first
+from .forest import APART_NOTE, Edge, grow_forest, refine_poses, rim_first
+from .grouping import heap_probability
+from .describe import describe, heap_colours
 from .grow import grow_groups
 from .outputs import closed_solid, write_outputs
 from .screen import SCREEN_LCS_WEIGHT, _ppf_screen_job, _screen_blocks, normalised_support, screen, select_candidates
@@ -316,10 +318,14 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
         edges = weighed
         joined = sorted({k for e in edges for k in (e.a, e.b)})
         solids = [closed_solid(fragments[i]) if i in joined or params.grow_groups else None for i in range(n)]
-        pose, group, notes = grow_forest(n, edges, samples, params, scale, be, solids)
+        t1 = time.perf_counter()
+        same_object = _same_object(fragments, hashes, params, cache, eng)
+        timings["describe"] = time.perf_counter() - t1
+        pose, group, notes = grow_forest(n, edges, samples, params, scale, be, solids, same_object)
         for key in first:
             notes[key] += " (its rims meet the partner's creases: weighed first)"
         used = [e for e in edges if notes[(e.a, e.b)].startswith("used")]
+        stats["apart"] = sum(note.startswith(APART_NOTE) for note in notes.values())
         timings["assemble"] = time.perf_counter() - t0
 
         # 5. what stayed apart, matched against the placed groups
@@ -327,7 +333,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
         joins = []
         if params.grow_groups:
             joins, grown = grow_groups(fragments, prepared, pose, group, candidates, samples, solids, params, scale,
-                                       be, eng, show, cache, hashes)
+                                       be, eng, show, cache, hashes, same_object)
             stats.update(grown)
         timings["grow"] = time.perf_counter() - t0
     finally:
@@ -355,6 +361,38 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
         result.timings["total"] = time.perf_counter() - t_start
         atomic_write_bytes(Path(out_dir) / "assembly.json", result.to_json().encode())
     return result
+
+
+def _same_object(fragments: list[Fragment], hashes: list[str], params: Params, cache: Cache, eng) -> np.ndarray | None:
+    """(n, n) p(one object) of every pair of fragments (`heap.grouping`'s descriptor model, each
+    fragment described on the engine), which the forest and the growth ask before joining two
+    groups (`Params.apart_below`); None where that is off, for fewer than three fragments, where
+    any is a cloud, or where one cannot be described."""
+    n = len(fragments)
+    if params.apart_below is None or n < 3 or any(is_cloud(f) for f in fragments):
+        return None
+    p = cache.get_array("same-object", *hashes)
+    if p is None or p.shape != (n, n):
+        colours = heap_colours(fragments)
+        found: list = [None] * n
+
+        def took(job, result):
+            found[job.payload[0]] = result
+
+        eng.map(_describe_one, [Job((i, colours[i]), (i,)) for i in range(n)], dict(enumerate(fragments)), took)
+        if any(d is None for d in found):
+            return None
+        p = heap_probability(found)
+        cache.put_array("same-object", p, *hashes)
+    return p
+
+
+def _describe_one(payload, fragment):
+    """`describe` of one fragment, or None where it cannot be described (too few faces ...)."""
+    try:
+        return describe(fragment, None, payload[1])
+    except (FragmentError, ValueError, np.linalg.LinAlgError):
+        return None
 
 
 def _record(a: int, b: int, doc: dict, note: str) -> MatchRecord:

@@ -25,6 +25,7 @@ CACHE_VERSION = 1
 # The sources a cached match depends on (globs under relicgpu/): the pair stages, the parameters,
 # this module and the backends.
 _STAGE_MODULES = ("pair/*", "topology", "cloud/points", "params", "heap/assembly", "heap/cache", "heap/screen", "heap/forest", "heap/grow",
+                  "heap/describe", "heap/grouping",
                   "backends/__init__", "backends/_prep", "backends/numpy",
                   "backends/warp", "backends/opencl")
 

@@ -74,7 +74,8 @@ def rim_first(edges: list[Edge], samples: list, params: Params, scale: float, ba
 
 
 def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale: float, backend,
-                solids: list | None = None) -> tuple[list, list[int], dict[tuple[int, int], str]]:
+                solids: list | None = None, same_object: np.ndarray | None = None
+                ) -> tuple[list, list[int], dict[tuple[int, int], str]]:
     """Spanning forest of verified matches, best first, that recovers from a wrong match.
 
     Each group keeps poses in its own frame. An edge between two groups merges them
@@ -82,7 +83,9 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
     outweigh (by score) those that agree on any one other placement (wrong matches scatter:
     summed together, three wrong ones outvoted a right one) and (2) no fragment of one group then
     interpenetrates a fragment of the other: by the volume of their intersection where both
-    are closed solids (`solids`, manifold3d), else by `penetration` of the surface samples.
+    are closed solids (`solids`, manifold3d), else by `penetration` of the surface samples, and
+    (3) the two groups do not look like pieces of different objects (`apart`, with the (n, n)
+    p(one object) `same_object` where given).
     An edge inside a group is used when it agrees with the placement the group already
     has (a closed loop), refused otherwise.
 
@@ -100,14 +103,14 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
     """
     solids = solids or [None] * n
     memo: dict = {}  # clash verdicts by relative placement: the regrown forests test the same ones
-    current = _grow(n, edges, samples, params, scale, backend, solids, memo)
+    current = _grow(n, edges, samples, params, scale, backend, solids, memo, same_object)
     dropped: dict[tuple[int, int], str] = {}
     for _ in range(RECOVERY_ROUNDS):
         base = _support(edges, current[2])
         best = None
         for s in _suspects(edges, current[1], current[2]):
             kept = [e for e in edges if (e.a, e.b) != (s.a, s.b) and (e.a, e.b) not in dropped]
-            trial = _grow(n, kept, samples, params, scale, backend, solids, memo)
+            trial = _grow(n, kept, samples, params, scale, backend, solids, memo, same_object)
             got = _support(kept, trial[2])
             if got[0] > base[0] and (best is None or got > best[0]):
                 best = (got, s, trial)
@@ -140,8 +143,9 @@ def _suspects(edges: list[Edge], group: list[int], notes: dict) -> list[Edge]:
         adjacent.setdefault(e.b, []).append(e)
     blame: dict[tuple[int, int], float] = {}
     for r in edges:
-        if not notes.get((r.a, r.b), "").startswith("refused"):
-            continue
+        note = notes.get((r.a, r.b), "")
+        if not note.startswith("refused") or note.startswith(APART_NOTE):
+            continue  # (groups refused as different objects say nothing of the tree's edges)
         if group[r.a] == group[r.b]:
             implicated = _tree_path(adjacent, r.a, r.b)
         else:
@@ -172,7 +176,7 @@ def _tree_path(adjacent: dict[int, list[Edge]], start: int, goal: int) -> list[E
 
 
 def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float, backend, solids: list,
-          memo: dict) -> tuple[list, list[int], dict[tuple[int, int], str]]:
+          memo: dict, same_object: np.ndarray | None = None) -> tuple[list, list[int], dict[tuple[int, int], str]]:
     """One greedy spanning forest of `edges` (see `grow_forest`)."""
     group = list(range(n))
     members = {i: [i] for i in range(n)}
@@ -209,6 +213,10 @@ def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float
         if rival > agree:
             notes[(e.a, e.b)] = "refused: other matches between the two groups agree on another placement"
             continue
+        why = apart(members[ga], members[gb], same_object, params)
+        if why is not None:
+            notes[(e.a, e.b)] = why
+            continue
         clash = first_clash(members[ga], members[gb], pose, move, samples, params, scale, backend, solids, memo)
         if clash is not None:
             p, q, what = clash
@@ -220,6 +228,23 @@ def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float
         members[ga] = sorted(members[ga] + members.pop(gb))
         notes[(e.a, e.b)] = "used: spanning tree"
     return pose, group, notes
+
+
+APART_NOTE = "refused: the two groups look like pieces of different objects"
+# Only groups of at least this many fragments each are told apart: one fragment's descriptors can
+# mislead (two touching shards of the Blender cube, mostly break, read p(one object) 0.01), the
+# mean over several pairs less so (docs/benchmarks.md, "Mixed heaps: groups that look like two objects")
+APART_MEMBERS = 2
+
+
+def apart(ga: list[int], gb: list[int], same_object: np.ndarray | None, params: Params) -> str | None:
+    """The note refusing to join groups ga and gb where the mean p(one object) over their fragment
+    pairs (`same_object`, (n, n), `heap.grouping`'s descriptor model) is under `Params.apart_below`
+    and each holds at least APART_MEMBERS fragments; None where they may be joined (or nothing is known)."""
+    if same_object is None or params.apart_below is None or min(len(ga), len(gb)) < APART_MEMBERS:
+        return None
+    p = float(np.mean(same_object[np.ix_(ga, gb)]))
+    return f"{APART_NOTE} (mean p(one object) {p:.2f} under {params.apart_below:g})" if p < params.apart_below else None
 
 
 def first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Params, scale: float, backend,

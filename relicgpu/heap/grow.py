@@ -29,7 +29,7 @@ from ..pair.prepare import prepare, with_fragment
 from ..pair.result import failed_doc
 from ..params import Params
 from .engines import Job
-from .forest import Edge, first_clash
+from .forest import Edge, apart, first_clash
 
 # A group match does not judge interpenetration or sunk surfaces on the merged surface: it is open
 # where the members touched, and points beside those holes read as inside it (a Blender cube shard
@@ -94,8 +94,8 @@ def group_key(members: tuple, pose: list, hashes: list[str]) -> str:
 
 def grow_groups(fragments: list[Fragment], prepared: list, pose: list, group: list[int], candidates: list,
                 samples: list, solids: list, params: Params, scale: float, backend, engine,
-                progress: bool = False, cache=None, hashes: list[str] | None = None
-                ) -> tuple[list[tuple[Edge, dict, str]], dict]:
+                progress: bool = False, cache=None, hashes: list[str] | None = None,
+                same_object: np.ndarray | None = None) -> tuple[list[tuple[Edge, dict, str]], dict]:
     """Join groups to placed groups by matching them whole (see the module docstring).
 
     `pose` and `group` (as `forest.grow_forest` returns them) are updated in place. Two groups are
@@ -140,6 +140,8 @@ def grow_groups(fragments: list[Fragment], prepared: list, pose: list, group: li
                 if any(is_cloud(fragments[i]) for i in big + small):
                     continue
                 if not any((min(i, j), max(i, j)) in linked for i in big for j in small):
+                    continue
+                if apart(list(big), list(small), same_object, params) is not None:
                     continue
                 tried.add((big, small))
                 trials.append((big, small, gb, gs))

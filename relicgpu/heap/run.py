@@ -139,6 +139,9 @@ def _assemble_main(args) -> int:
     if s.get("grow_tried"):
         log(f"{s['grow_joined']} of {s['grow_tried']} fragments or groups left apart joined a placed group "
             f"when matched against its merged surface")
+    if s.get("apart"):
+        log(f"{s['apart']} verified match(es) not used: they join groups that look like pieces of different "
+            f"objects (see assembly.json)")
     sizes = sorted((len(m) for m in result.group_members().values() if len(m) > 1), reverse=True)
     log(f"{s['placed']} fragments placed in {len(sizes)} group(s) of sizes {sizes}; "
         f"{s['fragments'] - s['placed']} unplaced")
