@@ -39,7 +39,7 @@ from ..io.load import Batch, read_batch
 from .cache import Cache, fragment_hash
 from .forest import APART_NOTE, Edge, grow_forest, refine_poses, rim_first
 from .grouping import heap_probability
-from .describe import describe, heap_colours
+from .describe import describe
 from .grow import grow_groups
 from .outputs import closed_solid, write_outputs
 from .screen import SCREEN_LCS_WEIGHT, _ppf_screen_job, _screen_blocks, normalised_support, screen, select_candidates
@@ -365,21 +365,20 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
 
 def _same_object(fragments: list[Fragment], hashes: list[str], params: Params, cache: Cache, eng) -> np.ndarray | None:
     """(n, n) p(one object) of every pair of fragments (`heap.grouping`'s descriptor model, each
-    fragment described on the engine), which the forest and the growth ask before joining two
-    groups (`Params.apart_below`); None where that is off, for fewer than three fragments, where
-    any is a cloud, or where one cannot be described."""
+    fragment described on the engine; colour left out: the files are not read again), which the
+    forest and the growth ask before joining two groups (`Params.apart_below`); None where that is
+    off, for fewer than three fragments, where any is a cloud, or where one cannot be described."""
     n = len(fragments)
     if params.apart_below is None or n < 3 or any(is_cloud(f) for f in fragments):
         return None
     p = cache.get_array("same-object", *hashes)
     if p is None or p.shape != (n, n):
-        colours = heap_colours(fragments)
         found: list = [None] * n
 
         def took(job, result):
             found[job.payload[0]] = result
 
-        eng.map(_describe_one, [Job((i, colours[i]), (i,)) for i in range(n)], dict(enumerate(fragments)), took)
+        eng.map(_describe_one, [Job((i,), (i,)) for i in range(n)], dict(enumerate(fragments)), took)
         if any(d is None for d in found):
             return None
         p = heap_probability(found)
@@ -390,7 +389,7 @@ def _same_object(fragments: list[Fragment], hashes: list[str], params: Params, c
 def _describe_one(payload, fragment):
     """`describe` of one fragment, or None where it cannot be described (too few faces ...)."""
     try:
-        return describe(fragment, None, payload[1])
+        return describe(fragment)
     except (FragmentError, ValueError, np.linalg.LinAlgError):
         return None
 

@@ -367,15 +367,11 @@ def _colours_of(fragment: Fragment):
         return None
 
 
-def heap_colours(fragments: list[Fragment]) -> list:
-    """Each fragment's vertex colours from its file, or None for all where any lacks them (colour
-    only counts when every fragment of the heap has it)."""
-    colours = [_colours_of(fr) for fr in fragments]
-    return [None] * len(fragments) if any(c is None for c in colours) else colours
-
-
 def describe_all(fragments: list[Fragment], params=None, progress: bool = False) -> list[Descriptor]:
-    it = zip(fragments, heap_colours(fragments))
+    colours = [_colours_of(fr) for fr in fragments]
+    if any(c is None for c in colours):  # colour only counts when every fragment has it
+        colours = [None] * len(fragments)
+    it = zip(fragments, colours)
     if progress:
         from tqdm import tqdm
         it = tqdm(list(it), desc="describe", unit="frag", file=sys.stderr, leave=False)
