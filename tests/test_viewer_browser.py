@@ -266,6 +266,8 @@ def test_assemble_from_the_page_streams_progress(page):
     page.wait_for_function("document.body.dataset.state === 'ready' && window.relicViewer.state.info.assembled")
     assert "assembled in" in page.inner_text("#job-status")
     assert not page.is_disabled("#toggle-btn")
+    # the match list is filled after the case shows 'ready' (loadMatches): wait for it, not a race
+    page.wait_for_function("document.querySelectorAll('#match-list li').length > 0")
     assert page.locator("#match-list li").count() == 1
     assert page.problems == []
 
