@@ -237,6 +237,7 @@ def test_pick_head_nodes_rematches_the_pair(page, served):
 
 
 def test_match_row_shows_the_pair_alone(page):
+    page.wait_for_selector('body[data-matches="ready"]')
     rows = page.locator("#match-list li")
     assert rows.count() == 3
     rows.nth(0).click()
@@ -266,8 +267,8 @@ def test_assemble_from_the_page_streams_progress(page):
     page.wait_for_function("document.body.dataset.state === 'ready' && window.relicViewer.state.info.assembled")
     assert "assembled in" in page.inner_text("#job-status")
     assert not page.is_disabled("#toggle-btn")
-    # the match list is filled after the case shows 'ready' (loadMatches): wait for it, not a race
-    page.wait_for_function("document.querySelectorAll('#match-list li').length > 0")
+    # the match list is filled after the case shows 'ready' (loadMatches): wait for it
+    page.wait_for_selector('body[data-matches="ready"]')
     assert page.locator("#match-list li").count() == 1
     assert page.problems == []
 

@@ -79,6 +79,7 @@ async function loadCase(caseId) {
   const stale = () => token !== state.loadToken;
   document.body.dataset.state = 'loading';
   delete document.body.dataset.contours;
+  delete document.body.dataset.matches;
   state.caseId = caseId;
   state.picks = [];
   state.contoursLoaded = 0;
@@ -302,15 +303,21 @@ function focusFragment(name) {
   view.flash(name);
 }
 
+// body[data-matches] is 'ready' once the match list of the case shown is filled (or known empty)
 async function loadMatches(caseId, stale) {
   ui.matchList.innerHTML = '';
   ui.matchCount.textContent = '';
-  if (!state.info.assembled) return;
+  document.body.dataset.matches = 'loading';
+  if (!state.info.assembled) {
+    document.body.dataset.matches = 'ready';
+    return;
+  }
   let data;
   try {
     data = await api.getMatches(caseId);
   } catch (err) {
     setStatus(ui.caseStatus, `${ui.caseStatus.textContent}\nmatches: ${err.message}`, true);
+    document.body.dataset.matches = 'error';
     return;
   }
   if (stale()) return;
@@ -343,6 +350,7 @@ async function loadMatches(caseId, stale) {
     });
     ui.matchList.append(li);
   }
+  document.body.dataset.matches = 'ready';
 }
 
 function showPair(a, b, transform) {
