@@ -185,6 +185,14 @@ def with_segmentations(params: Params, first: str | None = None, second: str | N
     return params
 
 
+def second_reading_params(params: Params) -> Params | None:
+    """The `Params` a mesh pair is matched on again where the first reading finds no fit
+    (`second_segmentation` as the segmentation), or None where there is no second reading."""
+    if params.second_segmentation in (None, params.segmentation):
+        return None
+    return params.with_(segmentation=params.second_segmentation, second_segmentation=None)
+
+
 def parse_assignments(items) -> dict:
     """Params fields from NAME=VALUE strings (the benchmark scripts' --set), each value of its
     field's type ("None" for None; a field unset by default takes a number or a name).

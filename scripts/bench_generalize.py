@@ -6,6 +6,8 @@ project's own generator, where the pipeline was tuned. Per row:
 
   seg R / seg P   recall and precision of `relicgpu.pair.segment`'s fracture faces (the labels
                   `pipeline.prepare` uses) against the generator's, counted over all faces
+  2nd R / 2nd P   the same of the second reading (`Params.second_segmentation`), on which a
+                  pair is matched again where the first finds no fit ("-": none)
   pairs right     two-piece objects: `match_pair` accepted, rotation error < 2 degrees and
                   vertex RMS < 1% of the object size (largest side of its bounding box)
   rot err         median rotation error of the two-piece matches (accepted or not), degrees
@@ -45,7 +47,7 @@ import numpy as np
 from relicgpu.heap.evaluate import relative_pose_error, score
 from relicgpu.synth import corpus
 from relicgpu.pair.icp import invert
-from relicgpu.params import SEGMENTATIONS, Params, parse_assignments, with_segmentations
+from relicgpu.params import SEGMENTATIONS, Params, parse_assignments, second_reading_params, with_segmentations
 
 QUICK = {"seeds": "0", "faces": 3000, "multi_faces": 1500, "pieces": "5", "realdata_assemble": False}
 FULL = {"seeds": "0,1,2", "faces": 6000, "multi_faces": 3000, "pieces": "5,8", "realdata_assemble": True}
@@ -193,6 +195,7 @@ def run(args) -> dict:
     faces = args.faces or preset["faces"]
     multi_faces = args.multi_faces or preset["multi_faces"]
     params = with_segmentations(Params(), args.segmentation, args.second_segmentation).with_(**args.set)
+    second = second_reading_params(params)
     backend = resolve(args.backend)
     plan = [(fam, seed, 2) for fam in families for seed in seeds] if args.two_piece else []
     plan += [(fam, seed, p) for fam in families for seed in seeds for p in pieces]
@@ -225,6 +228,10 @@ def run(args) -> dict:
             case["seg"] = segmentation_counts(result, params, backend)
             c = case["seg"]
             line += f", seg R {c['tp'] / max(c['true'], 1):.2f} P {c['tp'] / max(c['pred'], 1):.2f}"
+            if second is not None:
+                case["seg2"] = segmentation_counts(result, second, backend)
+                c = case["seg2"]
+                line += f", second R {c['tp'] / max(c['true'], 1):.2f} P {c['tp'] / max(c['pred'], 1):.2f}"
             if n == 2:
                 case["pair"] = pair_case(result, params, backend)
                 p = case["pair"]
@@ -253,14 +260,18 @@ def table_rows(cases: list) -> list[dict]:
     for fam in dict.fromkeys(c["family"] for c in cases):
         cs = [c for c in cases if c["family"] == fam]
         seg = [c["seg"] for c in cs if "seg" in c]
+        seg2 = [c["seg2"] for c in cs if "seg2" in c]
         pairs = [c["pair"] for c in cs if "pair" in c]
         asm = [c["assembly"] for c in cs if "assembly" in c]
         tp, pred, true = (sum(s[k] for s in seg) for k in ("tp", "pred", "true"))
+        tp2, pred2, true2 = (sum(s[k] for s in seg2) for k in ("tp", "pred", "true"))
         rows.append({
             "family": fam, "objects": len(cs),
             "faces_per_piece": float(np.mean([c["faces_per_piece"] for c in cs])) if seg or args_dry(cs) else None,
             "true_share": float(np.mean([c["true_share"] for c in cs])) if seg or args_dry(cs) else None,
             "seg_recall": tp / true if seg and true else None, "seg_precision": tp / pred if seg and pred else None,
+            "seg2_recall": tp2 / true2 if seg2 and true2 else None,
+            "seg2_precision": tp2 / pred2 if seg2 and pred2 else None,
             "pairs_right": sum(p["right"] for p in pairs), "pairs": len(pairs),
             "rotation_error_deg": float(np.median([p["rotation_error_deg"] for p in pairs])) if pairs else None,
             "part_accuracy": float(np.mean([a["part_accuracy"] for a in asm])) if asm else None,
@@ -281,14 +292,16 @@ def args_dry(cases: list) -> bool:
 
 def format_table(rows: list[dict]) -> str:
     f = lambda x, spec=".2f": "-" if x is None else format(x, spec)  # noqa: E731
-    head = "| family | objects | faces/piece | true fracture | seg R | seg P | pairs right | rot err deg | part acc | touch R | matches right | time s |"
-    lines = [head, "|" + "---|" * 12]
+    head = ("| family | objects | faces/piece | true fracture | seg R | seg P | 2nd R | 2nd P | pairs right | rot err deg "
+            "| part acc | touch R | matches right | time s |")
+    lines = [head, "|" + "---|" * 14]
     for r in rows:
         pairs = f"{r['pairs_right']}/{r['pairs']}" if r["pairs"] else "-"
         matches = (f"{r['verified_right']}/{r['verified']} ({r['used_right']}/{r['used']})"
                    if r.get("multi_objects") and "verified" in r else "-")
         lines.append(f"| {r['family']} | {r['objects']} | {f(r['faces_per_piece'], '.0f')} | {f(r['true_share'])} | "
-                     f"{f(r['seg_recall'])} | {f(r['seg_precision'])} | {pairs} | {f(r['rotation_error_deg'], '.1f')} | "
+                     f"{f(r['seg_recall'])} | {f(r['seg_precision'])} | {f(r.get('seg2_recall'))} | "
+                     f"{f(r.get('seg2_precision'))} | {pairs} | {f(r['rotation_error_deg'], '.1f')} | "
                      f"{f(r['part_accuracy'])} | {f(r['touching_recall'])} | {matches} | {r['time_s']:.0f} |")
     return "\n".join(lines)
 

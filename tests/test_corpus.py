@@ -125,6 +125,7 @@ def test_bench_quick_runs_on_one_family(tmp_path):
     doc = json.loads(out.read_text())
     (row,) = doc["rows"]
     assert row["pairs"] == 1 and row["multi_objects"] == 1 and 0 <= row["seg_recall"] <= 1
+    assert 0 <= row["seg2_recall"] <= 1 and 0 <= row["seg2_precision"] <= 1  # the second reading (hybrid)
     assert 0 <= row["verified_right"] <= row["verified"] and 0 <= row["used_right"] <= row["used"] <= row["verified"]
     c = row["every_pair"]  # a 5-piece object: ten pairs, each counted once
     assert c["touching"] + c["apart"] == 10 and c["touching"] == doc["cases"][1]["assembly"]["touching"]

@@ -15,14 +15,14 @@ from .icp import (apply, batched_icp, distinct_poses, facing_poses, invert, rans
                   rotation_angle_deg, same_pose)
 from ..io.fragment import is_cloud
 from .lcs import circular_lcs
-from ..params import Params
+from ..params import Params, second_reading_params
 from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP, MIN_FACING,
                          PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS, point_spacing, REGION_FACING, REGION_OVERLAP,
                          REGION_RESIDUAL, REGION_TURNS, RESIDUAL_SPACINGS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS,
                          SKIN_RIVALS_ESTIMATED, WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness,
                          majority_samples, thin_pick, thin_wall_fit, verify_clouds)
 from .facets import facet_fits
-from .prepare import Prepared, _ppf_table, _second_params, _second_reading, prepare
+from .prepare import Prepared, _ppf_table, _second_reading, prepare
 from .planar import RIM_HIT, apart, is_thin, polished_fits
 from .ppf import vote_poses
 from .result import PairMatch
@@ -90,7 +90,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     result = _match_prepared(pa, pb, params, be, heads, scale, timings)
     if clouds and heads is None:
         result = skin_continues(pa, pb, params, scale, result)
-    if heads is None and _second_params(params) is not None:
+    if heads is None and second_reading_params(params) is not None:
         first_rims = rims(result.transform) if result.accepted and rims is not None else None
         if not result.accepted or (first_rims is not None and first_rims <= 0):
             # the fracture as the second segmentation reads it (a segmentation that misreads one

@@ -11,7 +11,7 @@ import numpy as np
 from . import contour as contour_mod, features as features_mod, fusion as fusion_mod
 from ..backends import resolve
 from ..io.fragment import Fragment
-from ..params import Params
+from ..params import Params, second_reading_params
 from .cloudmatch import STRICT_SPREADS, cloud_sample, plane_samples, region_samples
 from ..cloud.points import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals
@@ -104,19 +104,13 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     if grown is None:
         grown = grown_facets(fragment.vertices, fragment.faces, seg, scale) if params.grown_outline > 0 else []
     timings["sample"] = time.perf_counter() - t2
-    second, second_params = None, _second_params(params)
+    second, second_params = None, second_reading_params(params)
     if with_second and second_params is not None:
         second = prepare(fragment, second_params, be, scale, facets=facets, grown=grown)
         timings["second"] = sum(second.timings.values())
     return Prepared(fragment, scale, seg.face_region, seg.region_is_fracture, contours, sample, patches, timings,
                     second=second, facets=facets, grown=grown)
 
-
-def _second_params(params: Params) -> Params | None:
-    """params of the second reading (None: there is none)."""
-    if params.second_segmentation in (None, params.segmentation):
-        return None
-    return params.with_(segmentation=params.second_segmentation, second_segmentation=None)
 
 
 def _second_reading(p: Prepared, params: Params, be, scale: float) -> Prepared | None:
@@ -126,7 +120,7 @@ def _second_reading(p: Prepared, params: Params, be, scale: float) -> Prepared |
         return p.second
     if p.fragment is None or len(p.fragment.faces) == 0:
         return None
-    return prepare(p.fragment, _second_params(params), be, scale, facets=p.facets, grown=p.grown)
+    return prepare(p.fragment, second_reading_params(params), be, scale, facets=p.facets, grown=p.grown)
 
 
 def with_fragment(prepared: Prepared, fragment) -> Prepared:
