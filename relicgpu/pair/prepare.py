@@ -112,7 +112,6 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
                     second=second, facets=facets, grown=grown)
 
 
-
 def _second_reading(p: Prepared, params: Params, be, scale: float) -> Prepared | None:
     """A mesh fragment's second reading: kept in `p`, else prepared now (None: a cloud, or no
     fragment to prepare)."""
