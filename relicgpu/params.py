@@ -35,6 +35,11 @@ class Params:
     # fit, on `second_segmentation` (None: not at all)
     segmentation: str = "roughness"  # one of SEGMENTATIONS
     second_segmentation: str | None = "hybrid"  # one of SEGMENTATIONS, or None
+    # ... and where the first reading's fit passed only in the band (accepted on its outline, skin
+    # or rims: `meshfit.band_fit`), the less sure acceptances; its rims decide between the two
+    # readings' fits as where the first fit's rims do not agree (docs/benchmarks.md, "A fit
+    # accepted in the band asks the second reading")
+    second_when_banded: bool = True
     region_merge_deg: float = 35.0   # regions join the skin across boundaries turning less than this ...
     region_merge_noise: float = 2.0  # ... plus this many times the skin's roughness (degrees) ...
     region_rough_max: float = 3.0    # ... unless rougher than this many times the skin

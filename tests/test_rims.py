@@ -212,3 +212,28 @@ def test_assemble_says_which_matches_were_weighed_first_for_their_rims(halves):
         assert m.used and m.note.startswith("used: ")
         assert m.note.endswith("weighed first)") == bool(expect), m.note
         assert asm.stats["rims_first"] == expect
+
+
+def test_a_fit_that_passed_only_in_the_band_asks_the_second_reading(halves, monkeypatch):
+    """A first-reading fit accepted on its outline (a residual over the bound) whose rims agree
+    less than the second reading's fit: the second's is taken, scored half; with
+    `second_when_banded` off, or where the first fit passed every check, the first is kept."""
+    pa, pb, truth, params = halves
+    pa, pb = (replace(p, second=p) for p in (pa, pb))
+    off = _turn(np.array([1.0, 0, 0]), 4.0, np.array([1.0, 0.5, 0.25])) @ truth  # its rims agree less, above 0
+
+    def fit(transform, reason):
+        return pl.PairMatch(transform, True, 0.5, 0.001, 0.5, 0.0, np.zeros((0, 2), np.int64), -1, -1, reason)
+
+    banded = "accepted on its outline (outlines agree 0.40; residual 0.004 above 0.003)"
+    cases = ((params, banded, True), (replace(params, second_when_banded=False), banded, False),
+             (params, "accepted", False))
+    for p, first_reason, expect_second in cases:
+        calls = iter([fit(off, first_reason), fit(truth, "accepted")])
+        monkeypatch.setattr(pl, "_match_prepared", lambda *a, **k: next(calls))
+        m = pl.match_pair(pa, pb, p, "numpy", scale=2.0)
+        assert m.accepted
+        err = rotation_angle_deg(m.transform[:3, :3] @ truth[:3, :3].T)
+        assert (err < 1e-6) == expect_second and ("(hybrid segmentation; its rims agree" in m.reason) == expect_second
+        assert m.score == (0.25 if expect_second else 0.5)
+        assert (next(calls, None) is None) == expect_second  # the second reading asked only where expected

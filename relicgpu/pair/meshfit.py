@@ -91,6 +91,10 @@ def rims_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, inde
     return replace(ver, reason=f"accepted on its rims (rims agree {agree:.2f}; {failed.reason})")
 
 
+# the reasons of the fits `band_fit` accepts (each begins so)
+BANDED = ("accepted on its outline", "accepted on its skin", "accepted on its rims")
+
+
 def band_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, failed):
     """`outline_fit` of a fit refused for its residual, `rims_fit` of one refused for facing, else None."""
     if failed.reason.startswith("residual"):

@@ -27,7 +27,7 @@ from .planar import RIM_HIT, apart, is_thin, polished_fits
 from .ppf import vote_poses
 from .result import PairMatch
 from . import seam
-from .meshfit import band_fit, skin_pick, verify_mesh
+from .meshfit import BANDED, band_fit, skin_pick, verify_mesh
 from .skinhold import held_by_skin, skin_continues
 from .verify import index_cache, rim_agreement
 
@@ -74,8 +74,9 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     heads: optional (contour_a, point_a, contour_b, point_b), the head nodes picked by hand.
 
     Meshes are matched again on `Params.second_segmentation`'s reading (`Prepared.second`, or
-    prepared here) where no fit passes, or where the fit's rims disagree (`_rims`): its fit is
-    taken where the first found none or its rims agree more; it scores `SECOND_READING_SCORE`.
+    prepared here) where no fit passes, where the fit's rims disagree (`_rims`), or where it passed
+    only in the band (`meshfit.band_fit`, `Params.second_when_banded`): its fit is taken where
+    the first found none or its rims agree more; it scores `SECOND_READING_SCORE`.
     """
     params = params or Params()
     be = resolve(backend)
@@ -92,10 +93,11 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
         result = skin_continues(pa, pb, params, scale, result)
     if heads is None and second_reading_params(params) is not None:
         first_rims = rims(result.transform) if result.accepted and rims is not None else None
-        if not result.accepted or (first_rims is not None and first_rims <= 0):
+        unsure = params.second_when_banded and result.accepted and result.reason.startswith(BANDED)
+        if not result.accepted or (first_rims is not None and (first_rims <= 0 or unsure)):
             # the fracture as the second segmentation reads it (a segmentation that misreads one
-            # family reads another right, docs/benchmarks.md): where the first found no fit, or
-            # one whose rims do not mostly meet the other's creases
+            # family reads another right, docs/benchmarks.md): where the first found no fit, one
+            # whose rims do not mostly meet the other's creases, or one that passed only in the band
             seconds = [_second_reading(p, params, be, scale) for p in (pa, pb)]
             second = None if None in seconds else _match_prepared(*seconds, params, be, None, scale, dict(timings))
             second_rims = None
