@@ -28,6 +28,7 @@ workspace is. The API (all JSON; errors are `{"error": message}` with a 4xx or
 """
 from __future__ import annotations
 
+import errno
 import ipaddress
 import os
 import sys
@@ -280,6 +281,16 @@ def serve_in_thread(app: Flask, host: str = "127.0.0.1", port: int = 0):
         (server, url); server.close() stops it.
     """
     server = make_server(app, host, port)
-    t = threading.Thread(target=server.run, name="relicgpu-viewer", daemon=True)
+    t = threading.Thread(target=_run_until_closed, args=(server,), name="relicgpu-viewer", daemon=True)
     t.start()
     return server, server_url(server, host)
+
+
+def _run_until_closed(server) -> None:
+    """`server.run()` until `server.close()`: closed from another thread, its sockets leave the
+    loop's select() with EBADF, which is how it ends, not an error."""
+    try:
+        server.run()
+    except OSError as exc:
+        if exc.errno != errno.EBADF:
+            raise
