@@ -191,8 +191,8 @@ def with_segmentations(params: Params, first: str | None = None, second: str | N
 
 
 def second_reading_params(params: Params) -> Params | None:
-    """The `Params` a mesh pair is matched on again where the first reading finds no fit
-    (`second_segmentation` as the segmentation), or None where there is no second reading."""
+    """The `Params` of a mesh pair's second reading (`second_segmentation` as the segmentation;
+    `pipeline.match_pair` says where it is asked), or None where there is no second reading."""
     if params.second_segmentation in (None, params.segmentation):
         return None
     return params.with_(segmentation=params.second_segmentation, second_segmentation=None)

@@ -25,6 +25,8 @@ WALL_SKIN_NEAR = 30
 # bend away within their reach (corpus vessel-clean seed 14: 7 of 97 continue); no wrong fit of
 # the corpus vessels' 8-piece objects covered as much.
 WALL_SKIN_WHOLE = 0.9
+# how the reasons of the fits `band_fit` accepts begin (`pipeline.match_pair` asks the second reading of them)
+ON_OUTLINE, ON_SKIN, ON_RIMS = BANDED = ("accepted on its outline", "accepted on its skin", "accepted on its rims")
 
 
 def verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, max_rmse: float):
@@ -66,9 +68,9 @@ def outline_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, i
         agree = rim_agreement(replace(a, creases=a.outline), replace(b, creases=b.outline), transform, contact,
                               index_of)
         if agree >= params.min_outline and (params.outline_skin is None or skin() >= params.outline_skin):
-            return replace(ver, reason=f"accepted on its outline (outlines agree {agree:.2f}; {failed.reason})")
+            return replace(ver, reason=f"{ON_OUTLINE} (outlines agree {agree:.2f}; {failed.reason})")
     if params.min_skin is not None and skin() >= params.min_skin:
-        return replace(ver, reason=f"accepted on its skin (the skin beside the seam continues {skin():.2f}; "
+        return replace(ver, reason=f"{ON_SKIN} (the skin beside the seam continues {skin():.2f}; "
                                    f"{failed.reason})")
     return None
 
@@ -88,11 +90,7 @@ def rims_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, inde
     ver = verify_mesh(a, b, transform, be, replace(params, min_facing=0.0), scale, index_of, params.max_rmse)
     if not ver.accepted:
         return None
-    return replace(ver, reason=f"accepted on its rims (rims agree {agree:.2f}; {failed.reason})")
-
-
-# the reasons of the fits `band_fit` accepts (each begins so)
-BANDED = ("accepted on its outline", "accepted on its skin", "accepted on its rims")
+    return replace(ver, reason=f"{ON_RIMS} (rims agree {agree:.2f}; {failed.reason})")
 
 
 def band_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, failed):
