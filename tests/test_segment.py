@@ -262,6 +262,20 @@ def test_wall_thickness_of_a_skin_without_area_is_none():
     assert wall_thickness(centers, normals, np.where(skin, 0.0, areas), skin) == np.inf
 
 
+
+def test_wall_thickness_of_a_finely_meshed_wall():
+    """A plate 0.06 thick meshed with 6,400 faces a side: its 24 nearest faces all lie on the
+    face's own side, so no wall is seen; searching every k-th face sees it (`at_most`)."""
+    from relicgpu.pair.walls import wall_thickness
+    x, y = np.meshgrid(np.linspace(0, 1, 80), np.linspace(0, 1, 80))
+    top = np.c_[x.ravel(), y.ravel(), np.full(x.size, 0.06)]
+    centers = np.r_[top, top * [1, 1, 0]]
+    normals = np.r_[np.tile([0.0, 0, 1], (x.size, 1)), np.tile([0.0, 0, -1], (x.size, 1))]
+    areas, skin = np.ones(len(centers)), np.ones(len(centers), bool)
+    assert wall_thickness(centers, normals, areas, skin) == np.inf
+    diagonal = np.sqrt(2 + 0.06 ** 2)
+    assert abs(wall_thickness(centers, normals, areas, skin, at_most=4000) * diagonal - 0.06) < 1e-3
+
 def test_a_rounded_lip_is_skin_and_the_cut_fracture():
     """The lip test's tube with its creases rounded by one smoothing step: the crease regions still
     see the cut, but the lips' rims are too soft for their planar-band test (segment_cues.LIP_*);

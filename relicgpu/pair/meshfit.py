@@ -11,6 +11,7 @@ import numpy as np
 
 from ..params import Params
 from . import seam
+from .revolution import axes_meet
 from .verify import rim_agreement, verify
 
 
@@ -31,10 +32,13 @@ ON_OUTLINE, ON_SKIN, ON_RIMS = BANDED = ("accepted on its outline", "accepted on
 
 def verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, max_rmse: float):
     """`verify` of a mesh pair's fit with `params`' checks, the residual bound `max_rmse` (of the
-    scale), and for two thin walls `wall_skin`'s."""
+    scale), and for two thin walls `wall_skin`'s and `axis_apart`'s."""
     ver = verify(a, b, transform, be, params.contact_distance * scale, max_rmse * scale, params.min_overlap,
                  params.penetration_depth * scale, params.max_penetration, index_of, min_facing=params.min_facing,
                  max_surface_penetration=params.max_surface_penetration)
+    apart = ver.accepted and axes_meet(a.axis, b.axis, transform, scale, params.axis_apart)
+    if apart:
+        return replace(ver, accepted=False, reason=apart)
     if (not ver.accepted or params.wall_skin is None or max(a.wall, b.wall) >= params.region_thin_wall
             or ver.overlap >= WALL_SKIN_WHOLE):
         return ver

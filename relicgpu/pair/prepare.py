@@ -19,7 +19,11 @@ from .segment import segment
 from ..topology import ring_average
 from .facets import flat_facets, grown_facets
 from .verify import SurfaceSample, sample_spacing, vertex_normals
+from .revolution import skin_axis
 from .walls import wall_thickness
+
+WALL_FACES = 4000  # the thin-wall checks' thickness is read on at most this many faces (`wall_thickness`)
+
 
 @dataclass(frozen=True, eq=False)
 class Contour:
@@ -94,10 +98,12 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     prob = sampling_prob(seg, params)
     sample = _surface_sample(fragment, seg, prob, params.icp_points, params.ppf_normal_radius * scale,
                              params.crease_angle_deg)
+    centres, skin = fragment.vertices[fragment.faces].mean(1), ~seg.fracture_faces
+    wall = wall_thickness(centres, seg.normals, seg.areas, skin, at_most=WALL_FACES)
+    axis = skin_axis(centres[skin], seg.normals[skin], seg.areas[skin]) if wall < params.region_thin_wall else None
     sample = replace(sample, outline=outline_points(fragment.vertices, fragment.faces, seg, params.outline_radius * scale,
                                                     params.outline_spread, 2 * params.icp_points),
-                     wall=wall_thickness(fragment.vertices[fragment.faces].mean(1), seg.normals, seg.areas,
-                                         ~seg.fracture_faces))
+                     wall=wall, axis=axis)
     patches = fracture_patches(fragment, seg, prob)
     if facets is None:
         facets = flat_facets(fragment.vertices, fragment.faces, seg, scale) if params.facet_outline > 0 else []

@@ -126,7 +126,7 @@ def wall_end_labels(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray,
 
 
 def wall_thickness(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, skin: np.ndarray,
-                   neighbours: int = 24) -> float:
+                   neighbours: int = 24, at_most: int | None = None) -> float:
     """The wall's thickness relative to the piece's size where the skin faces a parallel opposite
     face nearby (a vessel's inner and outer faces), else inf.
 
@@ -137,6 +137,9 @@ def wall_thickness(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, 
     areas : (F,) face areas
     skin : (F,) bool, faces of the grown skin
     neighbours : nearest faces searched for the opposite one
+    at_most : of a mesh of more faces, every k-th face is searched, at most this many (None: every
+        face). A finer mesh's nearest faces all lie on the skin's own side: rescanned vessel sherds
+        of 12,000 faces read as no wall at all, those of 3,000 faces as walls 0.02-0.04 thick.
 
     Returns
     -------
@@ -148,7 +151,12 @@ def wall_thickness(centers: np.ndarray, normals: np.ndarray, areas: np.ndarray, 
     size = float(np.linalg.norm(centers.max(0) - centers.min(0))) if len(centers) else 0.0
     if not skin.any() or size <= 0 or len(centers) < 4:
         return np.inf
+    if at_most is not None and len(centers) > at_most:
+        every = np.arange(0, len(centers), -(-len(centers) // at_most))
+        centers, normals, areas, skin = centers[every], normals[every], areas[every], skin[every]
     idx = np.flatnonzero(skin)
+    if len(idx) == 0:
+        return np.inf
     _, near = cKDTree(centers).query(centers[idx], k=min(neighbours, len(centers)), workers=query_threads())
     gap = np.einsum("fkd,fd->fk", centers[idx][:, None] - centers[near], normals[idx])
     opposite = (np.einsum("fkd,fd->fk", normals[near], normals[idx]) < -0.7) & (gap > 0)

@@ -1,0 +1,102 @@
+"""Axes of revolution: the sherds of a wheel-made vessel turn about one axis.
+
+The normal lines of a surface of revolution all meet its axis (Pottmann and Randrup, "Rotational
+and helical surface approximation for reverse engineering", 1998). For an axis of direction d and
+moment d̄ (Plücker coordinates) and a normal line through p of direction n, that is the linear
+condition d . (p x n) + d̄ . n = 0; the axis is the least-squares solution over the skin, with
+|d| = 1. A fit that lays two thin walls together must carry one wall's axis onto the other's: a
+sherd laid half a turn off on its band (the wrong fits that pass on a rescanned vessel's skin)
+puts its axis on the far side of the wall. Only thin walls are asked (`Params.region_thin_wall`):
+a patch of any smooth surface fits some surface of revolution to second order, so the axis of a
+pebble's piece means nothing; and only skins that turn (`AXIS_TURN`) about axes they hold firmly
+(`AXIS_HELD`): the normal lines of a flat tile meet any line along them, at infinity.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+# the second-smallest eigenvalue of the axis's normal equations over the smallest: a skin that
+# turns about one axis holds it (clean vessel sherds 27-550, rescanned 3-50); at 8 one clean
+# corpus sherd whose roughness reading took its break for skin held a wrong axis (8.1)
+AXIS_HELD = 10.0
+# the middle eigenvalue of the skin normals' second moment: a cylinder's arc of phi radians gives
+# about phi^2 / 12, so 0.03 asks an arc of about 35 degrees (corpus vessel sherds 0.05-0.43)
+AXIS_TURN = 0.03
+AXIS_DEG = 15.0  # axes more than this apart in direction do not meet ...
+AXIS_STRETCH = 0.15  # ... nor where they lie farther apart than `Params.axis_apart` (of the scale) within this of the foot
+NEIGHBOURS = 12  # normals averaged over this many nearest skin faces (a rescan's face normals are noisy)
+ROUNDS = 4  # reweighting rounds: break faces read as skin, lips and chips weigh less
+
+
+@dataclass(frozen=True)
+class Axis:
+    direction: np.ndarray  # (3,) unit
+    foot: np.ndarray  # (3,) the point of the axis nearest the skin's centroid
+    held: float  # how firmly the skin holds the direction (second-smallest over smallest eigenvalue)
+
+
+def _fit(points: np.ndarray, normals: np.ndarray, weights: np.ndarray):
+    centre = weights @ points / weights.sum()
+    rows = np.c_[np.cross(points - centre, normals), normals]  # each normal line: (p x n, n)
+    m = (rows * weights[:, None]).T @ rows
+    a, b, c = m[:3, :3], m[:3, 3:], m[3:, 3:]
+    c_inv = np.linalg.pinv(c + 1e-9 * np.trace(c) * np.eye(3))  # a cylinder's normals span a plane only
+    lam, vec = np.linalg.eigh(a - b @ c_inv @ b.T)
+    d = vec[:, 0]
+    moment = -c_inv @ b.T @ d
+    residual = rows @ np.r_[d, moment]
+    return Axis(d, np.cross(d, moment) + centre, float(lam[1] / max(lam[0], 1e-300))), residual
+
+
+def skin_axis(centres: np.ndarray, normals: np.ndarray, areas: np.ndarray) -> Axis | None:
+    """The axis of revolution of a skin, or None where under `NEIGHBOURS` faces or where it does not
+    turn (`AXIS_TURN`).
+
+    Parameters
+    ----------
+    centres, normals : (n, 3) float, the skin's face centres and unit normals
+    areas : (n,) float, their areas
+    """
+    if len(centres) < NEIGHBOURS:
+        return None
+    moment = (normals * areas[:, None]).T @ normals / max(areas.sum(), 1e-300)
+    if np.linalg.eigvalsh(moment)[1] < AXIS_TURN:
+        return None
+    _, near = cKDTree(centres).query(centres, k=NEIGHBOURS)
+    around = normals[near]
+    # a line has no sign: the two skins of a wall face apart, and must not cancel
+    sign = np.sign(np.einsum("ikj,ij->ik", around, normals))
+    smooth = (around * sign[..., None]).sum(1)
+    smooth /= np.maximum(np.linalg.norm(smooth, axis=1), 1e-300)[:, None]
+    axis, residual = _fit(centres, smooth, areas)
+    for _ in range(ROUNDS):
+        s = 2 * np.median(np.abs(residual)) + 1e-300
+        axis, residual = _fit(centres, smooth, areas / (1 + (residual / s) ** 2))
+    return axis
+
+
+def axes_apart(a: Axis, b: Axis, transform: np.ndarray, scale: float) -> tuple[float, float]:
+    """(degrees, distance) between a's axis and b's carried by `transform` (4, 4): the angle
+    between their directions, and the farthest b's axis lies from the stretch of a's within
+    `AXIS_STRETCH` times `scale` of its foot, in units of `scale`."""
+    d = transform[:3, :3] @ b.direction
+    foot = transform[:3, :3] @ b.foot + transform[:3, 3]
+    degrees = float(np.degrees(np.arccos(min(1.0, abs(float(a.direction @ d))))))
+    ends = a.foot + np.outer([-AXIS_STRETCH * scale, AXIS_STRETCH * scale], a.direction) - foot
+    off = ends - np.outer(ends @ d, d)
+    return degrees, float(np.linalg.norm(off, axis=1).max() / scale)
+
+
+def axes_meet(a: Axis | None, b: Axis | None, transform: np.ndarray, scale: float, apart: float | None) -> str | None:
+    """None where two walls' axes meet under `transform`, or where either is missing or loosely
+    held (or `apart` is None); else the reason they do not."""
+    if apart is None or a is None or b is None or min(a.held, b.held) < AXIS_HELD:
+        return None
+    degrees, distance = axes_apart(a, b, transform, scale)
+    if degrees <= AXIS_DEG and distance <= apart:
+        return None
+    return (f"the two walls' axes of revolution do not meet ({degrees:.0f} degrees, {distance:.2f} of the scale "
+            f"apart)")
