@@ -438,6 +438,27 @@ def _without_timings(doc):
     return {k: v for k, v in doc.items() if k != "timings"}
 
 
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is `pid` (Linux's /proc; none elsewhere)."""
+    kids = []
+    for status in Path("/proc").glob("[0-9]*/status"):
+        try:
+            fields = dict(line.split(":\t", 1) for line in status.read_text().splitlines() if ":\t" in line)
+        except OSError:
+            continue
+        if fields.get("PPid", "").strip() == str(pid):
+            kids.append(int(status.parent.name))
+    return kids
+
+
+def _alive(pid: int) -> bool:
+    """Whether `pid` runs (a zombie left unreaped by a container's init does not)."""
+    try:
+        return "\tZ" not in Path(f"/proc/{pid}/status").read_text().split("State:", 1)[1][:4]
+    except (OSError, IndexError):
+        return False
+
+
 def test_cli_killed_mid_run_resumes_from_its_cache(tmp_path, synth_dir, local_result):
     src = synth_dir / "fragments"
     out = tmp_path / "out"
@@ -449,8 +470,13 @@ def test_cli_killed_mid_run_resumes_from_its_cache(tmp_path, synth_dir, local_re
             break
         time.sleep(0.01)
     assert proc.poll() is None, "the run ended before it could be killed: " + proc.stderr.read().decode()[-2000:]
+    workers = _children(proc.pid)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(map(_alive, workers)):
+        time.sleep(0.05)
+    assert not [w for w in workers if _alive(w)], "forked workers outlived the killed run"
     done = sorted(p.name for p in pairs_dir.iterdir() if p.suffix == ".json")
     mtimes = {p.name: p.stat().st_mtime_ns for p in pairs_dir.iterdir() if p.suffix == ".json"}
     assert done and not (out / "assembly.json").exists()

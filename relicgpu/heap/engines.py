@@ -19,8 +19,11 @@ of the shared objects it needs; the function is called as
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import multiprocessing
 import os
+import signal
 import sys
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -86,7 +89,7 @@ class LocalEngine:
         _FORKED = (fn, jobs, objects)  # the workers inherit these: nothing is pickled but the results
         try:
             with ProcessPoolExecutor(min(self.workers, len(jobs)), mp_context=multiprocessing.get_context("fork"),
-                                     initializer=_forked_start) as pool:
+                                     initializer=_forked_start, initargs=(os.getpid(),)) as pool:
                 _collect({pool.submit(_forked_job, k): job for k, job in enumerate(jobs)}, on_result)
         finally:
             _FORKED = None
@@ -102,13 +105,21 @@ class LocalEngine:
 _FORKED: tuple | None = None  # (fn, jobs, objects) of the forked map under way
 
 
-def _forked_start() -> None:
+def _forked_start(parent: int) -> None:
     """A forked worker: one thread of its own (`backends.numpy.query_threads`); the parent's
-    host thread pool did not survive the fork."""
+    host thread pool did not survive the fork. It ends with its parent: the workers of a killed
+    `relicgpu assemble` waited on their job queue for good, each holding the prepared fragments."""
     from ..backends import _prep
 
     os.environ["OMP_NUM_THREADS"] = "1"
     _prep._POOL = None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG (Linux: the only system that forks here)
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent died before the signal was asked for
+        os._exit(1)
 
 
 def _forked_job(k: int):
