@@ -146,9 +146,10 @@ class Params:
     # surface (`seam.skin_points`): a break through a wall leaves both skins running on across the
     # seam; a wall laid along a wall, or turned across it, leaves them beside the partner's (None: never)
     wall_skin: float | None = 0.15
-    # a fit of two thin walls whose skins each turn firmly about an axis (`revolution`) is refused
-    # where it carries one axis more than `revolution.AXIS_DEG` or axis_apart (of the scale) off
-    # the other: a wheel-made vessel's sherds share one (None: never)
+    # a fit of two pieces whose skins each turn firmly about an axis (`revolution`: thin walls, and
+    # thicker pieces that are plainly surfaces of revolution) is refused where it carries one axis
+    # more than `revolution.AXIS_DEG` or axis_apart (of the scale) off the other: a wheel-made
+    # vessel's sherds share one (None: never)
     axis_apart: float | None = 0.1
     # a mesh fit that passes every check but facing is accepted where its rims meet the
     # partner's creases (`verify.rim_agreement`) by at least facing_rims: a thin wall's narrow

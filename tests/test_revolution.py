@@ -1,5 +1,6 @@
-"""Axes of revolution of thin walls (`relicgpu.pair.revolution`): found on a wheel-made sherd,
-none on a flat tile, and a fit that carries one sherd's axis off the other's refused."""
+"""Axes of revolution (`relicgpu.pair.revolution`): found on a wheel-made sherd, none on a flat
+tile, asked of a thick jar's piece but not of a pebble's or a flat-faced shard's, and a fit that
+carries one piece's axis off the other's refused."""
 import numpy as np
 
 from relicgpu.backends import resolve
@@ -7,7 +8,7 @@ from relicgpu.heap.assembly import common_scale
 from relicgpu.pair.icp import apply, axis_rotation, rotation_angle_deg
 from relicgpu.pair.pipeline import match_pair
 from relicgpu.pair.prepare import prepare
-from relicgpu.pair.revolution import AXIS_HELD, axes_apart, axes_meet, skin_axis
+from relicgpu.pair.revolution import AXIS_HELD, axes_apart, axes_meet, firm, skin_axis
 from relicgpu.params import Params
 from relicgpu.synth import corpus
 
@@ -97,3 +98,44 @@ def test_a_rescanned_sherd_laid_half_a_turn_off_is_refused():
     assert off.accepted and error(off) > 150
     on = match_pair(a, b, params, be, scale=scale)
     assert not on.accepted or error(on) < 10
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def test_only_a_plain_surface_of_revolution_is_asked_of_a_solid_piece():
+    rng = np.random.default_rng(3)
+    # a jar's piece, wall 0.09 thick: a turned profile's outer and inner skin (not a thin wall)
+    points, normals, areas = _sherd(0.0, 1.5, rng, wall=0.09)
+    jar = skin_axis(points, normals, areas, thin=False)
+    assert jar is not None and firm(jar, 1.0)
+    # a pebble's piece: an ellipsoid with three different axes and low bumps
+    u = _unit(rng.normal(size=(3000, 3)))
+    u = u[u[:, 0] > 0.2]
+    half = np.array([0.5, 0.36, 0.28])
+    bump = 1 + 0.05 * np.sin(u @ np.array([2.0, -1.0, 3.0]))
+    pebble = skin_axis(u * half * bump[:, None], _unit(u / half ** 2), np.full(len(u), 1.0 / len(u)), thin=False)
+    assert pebble is None or not firm(pebble, 1.0)
+    # a cube's corner shard: three flat faces, mostly the first (its normal lines are parallel)
+    n = 1500
+    which = rng.choice(3, n, p=[0.7, 0.15, 0.15])
+    points = rng.random((n, 3)) * 0.4
+    points[np.arange(n), which] = 0.0
+    normals = -np.eye(3)[which]
+    shard = skin_axis(points, normals, np.full(n, 1.0 / n), thin=False)
+    assert shard is None or not firm(shard, 1.0)
+
+
+def test_a_jars_piece_laid_on_a_piece_it_does_not_touch_is_refused():
+    # voronoi-clean, 5 pieces, seed 2 (a thick jar): pieces 0 and 2 do not touch; without the rule
+    # a fit 125 degrees off passed (piece 0 holds the jar's axis: held 533, its normal lines 0.001
+    # of the scale from it)
+    obj = corpus.generate("voronoi-clean", pieces=5, seed=2, faces=3000)
+    assert (0, 2) not in obj.touching
+    be, params = resolve("numpy"), Params()
+    scale = common_scale(obj.fragments, params)
+    a, b = (prepare(obj.fragments[k], params, be, scale=scale, with_second=True) for k in (0, 2))
+    assert not a.sample.axis.thin and firm(a.sample.axis, scale)
+    assert match_pair(a, b, params.with_(axis_apart=None), be, scale=scale).accepted
+    assert not match_pair(a, b, params, be, scale=scale).accepted

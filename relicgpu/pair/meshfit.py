@@ -32,7 +32,7 @@ ON_OUTLINE, ON_SKIN, ON_RIMS = BANDED = ("accepted on its outline", "accepted on
 
 def verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, max_rmse: float):
     """`verify` of a mesh pair's fit with `params`' checks, the residual bound `max_rmse` (of the
-    scale), and for two thin walls `wall_skin`'s and `axis_apart`'s."""
+    scale), `axis_apart`'s, and for two thin walls `wall_skin`'s."""
     ver = verify(a, b, transform, be, params.contact_distance * scale, max_rmse * scale, params.min_overlap,
                  params.penetration_depth * scale, params.max_penetration, index_of, min_facing=params.min_facing,
                  max_surface_penetration=params.max_surface_penetration)

@@ -100,7 +100,7 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
                              params.crease_angle_deg)
     centres, skin = fragment.vertices[fragment.faces].mean(1), ~seg.fracture_faces
     wall = wall_thickness(centres, seg.normals, seg.areas, skin, at_most=WALL_FACES)
-    axis = skin_axis(centres[skin], seg.normals[skin], seg.areas[skin]) if wall < params.region_thin_wall else None
+    axis = skin_axis(centres[skin], seg.normals[skin], seg.areas[skin], thin=wall < params.region_thin_wall)
     sample = replace(sample, outline=outline_points(fragment.vertices, fragment.faces, seg, params.outline_radius * scale,
                                                     params.outline_spread, 2 * params.icp_points),
                      wall=wall, axis=axis)

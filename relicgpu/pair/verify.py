@@ -46,7 +46,7 @@ class SurfaceSample:
     # (`prepare.outline_points`); None: clouds
     wall: float = np.inf  # the wall's thickness relative to the piece's size where it is a shell
     # (`walls.wall_thickness`), else inf
-    axis: Axis | None = None  # a thin wall's axis of revolution (`revolution.skin_axis`), else None
+    axis: Axis | None = None  # the skin's axis of revolution (`revolution.skin_axis`), else None
 
     def weights(self) -> np.ndarray:
         """(P,) weight of each fracture point: `fracture_weight`, or 1 where none was given (clouds)."""
