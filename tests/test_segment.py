@@ -262,7 +262,6 @@ def test_wall_thickness_of_a_skin_without_area_is_none():
     assert wall_thickness(centers, normals, np.where(skin, 0.0, areas), skin) == np.inf
 
 
-
 def test_wall_thickness_of_a_finely_meshed_wall():
     """A plate 0.06 thick meshed with 6,400 faces a side: its 24 nearest faces all lie on the
     face's own side, so no wall is seen; searching every k-th face sees it (`at_most`)."""
@@ -275,6 +274,7 @@ def test_wall_thickness_of_a_finely_meshed_wall():
     assert wall_thickness(centers, normals, areas, skin) == np.inf
     diagonal = np.sqrt(2 + 0.06 ** 2)
     assert abs(wall_thickness(centers, normals, areas, skin, at_most=4000) * diagonal - 0.06) < 1e-3
+
 
 def test_a_rounded_lip_is_skin_and_the_cut_fracture():
     """The lip test's tube with its creases rounded by one smoothing step: the crease regions still
