@@ -94,10 +94,8 @@ def skin_axis(centres: np.ndarray, normals: np.ndarray, areas: np.ndarray, thin:
     d = axis.direction
     across = smooth - np.outer(smooth @ d, d)
     sine = np.linalg.norm(across, axis=1)
-    e1 = np.cross(d, [1.0, 0, 0] if abs(d[0]) < 0.9 else [0, 1.0, 0])
-    e1 /= np.linalg.norm(e1)
-    uv = np.c_[across @ e1, across @ np.cross(d, e1)]
-    about = float(np.linalg.eigvalsh((uv * weights[:, None]).T @ uv / weights.sum())[0])
+    # the normals across the axis span at most its normal plane: their moment's zero eigenvalue comes first
+    about = float(np.linalg.eigvalsh((across * weights[:, None]).T @ across / weights.sum())[1])
     near = float(np.median(np.abs(residual) / np.maximum(sine, 1e-3)))
     return Axis(axis.direction, axis.foot, axis.held, near, about, thin)
 
