@@ -134,3 +134,54 @@ def test_unique_rows_on_spans_that_overflow_int64():
     assert inverse.tolist() == [0, 1, 0] and counts.tolist() == [2, 1]
     assert is_closed(box.vertices, box.faces) and not is_closed(box.vertices, box.faces[1:])
     assert not is_closed(box.vertices, box.faces[:, ::-1])  # inside out: negative volume
+
+
+def _signed_volume(v, f):
+    return float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum()) / 6.0
+
+
+def test_a_mesh_wound_inside_out_is_turned_outward_and_says_so(tmp_path):
+    box = _box()
+    trimesh.Trimesh(box.vertices, box.faces[:, ::-1]).export(tmp_path / "inside_out.ply")
+    frag = load_fragment(tmp_path / "inside_out.ply")
+    assert _signed_volume(frag.vertices, frag.faces) == pytest.approx(6.0)
+    assert any("faces wound inward" in n and "inside_out.ply" in n for n in frag.notes)
+    box.export(tmp_path / "right.ply")
+    assert not any("wound" in n for n in load_fragment(tmp_path / "right.ply").notes)
+
+
+def test_a_patch_wound_the_other_way_is_rewound_with_its_neighbours():
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    faces = sphere.faces.copy()
+    patch = sphere.triangles_center[:, 2] > 0.5
+    faces[patch] = faces[patch][:, ::-1]
+    frag = fragment_from_arrays("patchy", sphere.vertices, faces)
+    assert any("wound inconsistently" in n for n in frag.notes)
+    mesh = trimesh.Trimesh(frag.vertices, frag.faces, process=False)
+    assert mesh.is_winding_consistent and mesh.volume > 0
+
+
+def test_sheets_meeting_at_an_edge_and_open_sheets_keep_their_winding():
+    # two boxes sharing an edge (four faces on it) and a lone square wound either way
+    both = trimesh.util.concatenate([_box(), _box().apply_translation((1, 2, 0))])
+    both.merge_vertices()
+    edges, counts = np.unique(np.sort(both.edges, axis=1), axis=0, return_counts=True)
+    assert counts.max() == 4
+    frag = fragment_from_arrays("edge", both.vertices, both.faces)
+    assert not any("wound" in n for n in frag.notes)
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]), np.array([[0, 2, 1], [0, 3, 2]])
+    assert np.array_equal(fragment_from_arrays("sheet", *square).faces, square[1])
+
+
+def test_a_piece_scanned_inside_out_still_matches_its_partner(tmp_path):
+    from relicgpu import match_pair
+    from relicgpu.pair.icp import invert, rotation_angle_deg
+    from relicgpu.synth import corpus
+
+    r = corpus.generate("rough-clean", 2, 1, 3000)
+    a, b = r.fragments
+    a.to_trimesh().export(tmp_path / "a.ply")
+    trimesh.Trimesh(b.vertices, b.faces[:, ::-1], process=False).export(tmp_path / "b.ply")
+    m = match_pair(load_fragment(tmp_path / "a.ply"), load_fragment(tmp_path / "b.ply"), backend="numpy")
+    true = invert(r.poses[0]) @ r.poses[1]
+    assert m.accepted and rotation_angle_deg(m.transform[:3, :3] @ true[:3, :3].T) < 1.0  # 180 wound inward
