@@ -449,3 +449,21 @@ def test_a_union_whose_sheets_touch_at_an_edge_is_written_closed(monkeypatch):
     assert 0 < np.abs(v - v0).max() < 1e-4  # a hair
     assert len(notes) == 1 and notes[0].startswith("box, box: their union is not closed as merged.stl stores it")
     assert notes[0].endswith("so merged.stl is not watertight there")
+
+
+def test_a_cloud_whose_normals_point_inward_is_turned_outward_and_matches():
+    from relicgpu import match_pair
+    from relicgpu.cloud.points import cloud_fragment
+    from relicgpu.pair.icp import invert, rotation_angle_deg
+    from relicgpu.synth import corpus
+
+    r = corpus.generate("rough-clean", pieces=2, seed=0, faces=4000)
+    clouds = []
+    for k, (f, sign) in enumerate(zip(r.fragments, (1.0, -1.0))):
+        points, face = trimesh.sample.sample_surface(f.to_trimesh(), 2500, seed=k)
+        clouds.append(cloud_fragment(f.name, points, sign * f.to_trimesh().face_normals[face], source=f"{f.name}.ply"))
+    assert not clouds[0].notes
+    assert clouds[1].notes == (f"{r.fragments[1].name}.ply: the given normals point into the solid; turned outward",)
+    m = match_pair(*clouds, backend="numpy")
+    true = invert(r.poses[0]) @ r.poses[1]
+    assert m.accepted and rotation_angle_deg(m.transform[:3, :3] @ true[:3, :3].T) < 2.0
