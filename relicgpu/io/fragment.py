@@ -165,8 +165,9 @@ def split_bodies(name: str, label: str, source: str | None, parts, thin_above: i
 def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str | None,
                 thin_above: int | None = None, progress: bool = True, describe: bool = True) -> Fragment:
     """One body's faces -> a Fragment: thinned where it has more than `thin_above` faces;
-    degenerate and duplicate faces and unused vertices removed. `describe` False skips what
-    only makes a note (the watertightness test: 0.7 GiB and seconds on 6M faces)."""
+    degenerate and duplicate faces and unused vertices removed; wound outward (`outward`).
+    `describe` False skips what only makes a note (the watertightness test: 0.7 GiB and seconds
+    on 6M faces) and rewinding patch by patch."""
     notes: list[str] = []
     thinned_from = 0
     if thin_above is not None and len(f) > thin_above:
@@ -191,21 +192,22 @@ def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str
         f = f[max(pieces, key=lambda p: _area(v, f[p]))]
         v, f = _used_vertices(v, f)
         notes.append(f"{label}: fell apart into {len(pieces)} bodies once degenerate faces were removed; kept the largest")
-    f, turned = outward(v, f)
+    f, turned = outward(v, f, rewind=describe)
     notes += [f"{label}: {why}" for why in turned]
     if describe and not is_watertight(f):
         notes.append(f"{label}: the mesh is not watertight (open boundary); accepted, as scans often are")
     return Fragment(name, v, f.astype(np.int32), source, tuple(notes), thinned_from=thinned_from)
 
 
-def outward(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, list[str]]:
+def outward(v: np.ndarray, f: np.ndarray, rewind: bool = True) -> tuple[np.ndarray, list[str]]:
     """Faces wound alike across every edge and outward, and what was turned to make them so.
 
     A scan exported inside out, or with patches wound the other way, has normals that point into
     the solid: the checks that read which side of a surface is solid (facing, interpenetration)
     then pass a fit turned half over (corpus rough-clean seed 1, one piece inside out: accepted 180
-    degrees off). Outward is where the signed volume, taken about the centroid, is positive; a
-    body that encloses next to none (an open sheet) is left as wound.
+    degrees off). Outward is where the signed volume is positive; a body that encloses next to
+    none (an open sheet) is left as wound. `rewind` False turns the body as a whole only (a file of
+    millions of faces read again for the outputs: rewinding patch by patch walks the whole graph).
 
     Parameters
     ----------
@@ -218,16 +220,14 @@ def outward(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, list[str]]:
     turned : list of str, one line for each change made
     """
     turned = []
-    if _misrun_edges(f):
+    if rewind and _misrun_edges(f):
         import trimesh
 
         mesh = trimesh.Trimesh(v, f, process=False)
         trimesh.repair.fix_winding(mesh)
         f = np.asarray(mesh.faces)
         turned.append("faces wound inconsistently; each patch rewound to agree with its neighbours")
-    t = v[f] - v[f].reshape(-1, 3).mean(0)
-    volume = float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum()) / 6.0
-    if volume < -ENCLOSED * float(np.prod(np.ptp(v, axis=0))):
+    if signed_volume(v, f) < -ENCLOSED * float(np.prod(np.ptp(v, axis=0))):
         f = np.ascontiguousarray(f[:, ::-1])
         turned.append("faces wound inward (normals into the solid); turned outward")
     return f, turned
@@ -357,6 +357,16 @@ def degenerate_faces(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     rounding = 8 * np.finfo(np.float64).eps * float(np.abs(v).max(initial=0.0)) * diag
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     return repeated | (area2 <= max(1e-14 * diag ** 2, rounding))
+
+
+def signed_volume(v: np.ndarray, f: np.ndarray, chunk: int = 1_000_000) -> float:
+    """The volume the faces enclose, positive where they are wound outward; taken about the
+    vertices' centroid (a scan far from the origin keeps its digits), `chunk` faces at a time."""
+    centre, total = v.mean(axis=0), 0.0
+    for start in range(0, len(f), chunk):
+        t = v[f[start:start + chunk]] - centre
+        total += float(np.einsum("ij,ij->", t[:, 0], np.cross(t[:, 1], t[:, 2])))
+    return total / 6.0
 
 
 def _misrun_edges(f: np.ndarray) -> int:
