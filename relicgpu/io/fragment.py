@@ -369,11 +369,18 @@ def signed_volume(v: np.ndarray, f: np.ndarray, chunk: int = 1_000_000) -> float
     return total / 6.0
 
 
+def _edges(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each face's three edges as it runs them, (3m, 2) int64; the undirected edge of each, (3m,);
+    and how many faces share each undirected edge, (E,)."""
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).astype(np.int64, copy=False)
+    _, edge, count = unique_rows(np.sort(directed, axis=1))
+    return directed, edge, count
+
+
 def _misrun_edges(f: np.ndarray) -> int:
     """How many edges of exactly two faces both faces run the same way (an edge of more faces,
     where sheets meet, says nothing of their winding)."""
-    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).astype(np.int64)
-    _, edge, count = unique_rows(np.sort(directed, axis=1))
+    directed, edge, count = _edges(f)
     two = count[edge] == 2
     forward = directed[:, 0] < directed[:, 1]
     runs = np.bincount(edge[two], weights=forward[two], minlength=len(count))
@@ -430,6 +437,4 @@ def count_bodies(vertices: np.ndarray, faces: np.ndarray) -> int:
 
 def is_watertight(faces: np.ndarray) -> bool:
     """Every undirected edge is shared by exactly two faces."""
-    f = np.asarray(faces, np.int64)
-    _, _, counts = unique_rows(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1))
-    return bool(np.all(counts == 2))
+    return bool(np.all(_edges(np.asarray(faces, np.int64))[2] == 2))
