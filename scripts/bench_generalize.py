@@ -24,6 +24,13 @@ project's own generator, where the pipeline was tuned. Per row:
     python scripts/bench_generalize.py --families voronoi-noisy --realdata none --backend warp-cpu
     python scripts/bench_generalize.py --families smooth-clean --realdata none --set patch_turns=36
     python scripts/bench_generalize.py --families vessel-noisy --realdata none --pieces 8 --every-pair
+    python scripts/bench_generalize.py --families smooth-clean --realdata none --pieces 3,4 --no-two-piece \
+        --multi-faces 6000 --coarse-faces 250
+
+--coarse-faces N makes every other piece of each multi-piece object again at N faces a piece (the
+same piece of the same cut, its pose and labels with it): pieces of one object at very different
+resolutions, as Breaking Bad's are (190 to 15,000 faces a piece). Where a family's cut comes out
+otherwise at N faces (rough and vessel cuts do), the case is skipped and says so.
 
 --every-pair also runs `match_pair` on every pair of pieces of each multi-piece object and prints
 a second table: of the touching pairs, right / near (accepted within 5 degrees and 3% of the
@@ -63,6 +70,25 @@ def make_case(family: str, pieces: int | None, seed: int, faces: int):
         from relicgpu import synth
         return synth.generate(synth.SHAPES[seed % 3], pieces, seed, faces, noise=0.0005, progress=False)
     return corpus.generate(family, pieces, seed, faces)
+
+
+def coarse_every_other(result, family: str, seed: int, faces: int):
+    """`result` with every other piece (1, 3, ...) made again at `faces` faces a piece, or a
+    ValueError where the cut comes out otherwise at that resolution (a piece's bounding box in the
+    object frame more than 2% of the size off)."""
+    from dataclasses import replace
+
+    coarse = make_case(family, len(result.fragments), seed, faces)
+    size = corpus.object_size(result)
+    pieces = {k: (result, coarse)[k % 2] for k in range(len(result.fragments))}
+    for k in range(1, len(result.fragments), 2):
+        placed = [r.fragments[k].vertices @ r.poses[k][:3, :3].T + r.poses[k][:3, 3] for r in (result, coarse)]
+        corners = [np.r_[p.min(0), p.max(0)] for p in placed]
+        if np.abs(corners[0] - corners[1]).max() > 0.02 * size:
+            raise ValueError(f"piece {k} comes out otherwise at {faces} faces")
+    return replace(result, fragments=[pieces[k].fragments[k] for k in pieces],
+                   poses=[pieces[k].poses[k] for k in pieces],
+                   fracture_faces=[pieces[k].fracture_faces[k] for k in pieces])
 
 
 def segmentation_counts(result, params: Params, backend) -> dict:
@@ -219,6 +245,12 @@ def run(args) -> dict:
         except FileNotFoundError as exc:
             print(f"[{k}/{len(plan)}] {fam}: skipped ({exc})", file=sys.stderr, flush=True)
             continue
+        if args.coarse_faces and n not in (None, 2):
+            try:
+                result = coarse_every_other(result, fam, seed, args.coarse_faces)
+            except ValueError as exc:
+                print(f"[{k}/{len(plan)}] {fam} seed {seed}: skipped ({exc})", file=sys.stderr, flush=True)
+                continue
         case["pieces"] = len(result.fragments)
         case["faces_per_piece"] = float(np.mean([len(f.faces) for f in result.fragments]))
         case["true_share"] = float(np.mean(np.concatenate(result.fracture_faces)))
@@ -330,6 +362,8 @@ def main(argv=None) -> int:
                                      "(quick: 5; full: 5,8)")
     ap.add_argument("--faces", type=int, help="faces a piece of two-piece objects (quick 1500, full 4000)")
     ap.add_argument("--multi-faces", type=int, help="faces a piece of multi-piece objects (quick 800, full 2000)")
+    ap.add_argument("--coarse-faces", type=int,
+                    help="make every other piece of each multi-piece object again at this many faces")
     ap.add_argument("--backend", default="numpy", help="numpy, warp-cpu, ... (default numpy)")
     ap.add_argument("--workers", type=int, default=1, help="assemble's local workers (default 1)")
     ap.add_argument("--two-piece", action=argparse.BooleanOptionalAction, default=True,

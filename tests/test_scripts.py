@@ -138,6 +138,24 @@ def test_bench_generalize_scores_a_match_against_the_true_relative_pose():
         assert not match_right(result, order, p, q, invert(result.poses[p]) @ result.poses[q], size)
 
 
+def test_bench_generalize_makes_every_other_piece_coarse_where_the_cut_allows():
+    """--coarse-faces: pieces of one object at very different resolutions (Breaking Bad's)."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from bench_generalize import coarse_every_other
+    from relicgpu.synth import corpus
+
+    fine = corpus.generate("voronoi-clean", 3, 2, 2000)
+    mixed = coarse_every_other(fine, "voronoi-clean", 2, 250)
+    faces = [len(f.faces) for f in mixed.fragments]
+    assert faces[1] < faces[0] / 3 and faces[1] < faces[2] / 3
+    assert [len(x) for x in mixed.fracture_faces] == faces and mixed.touching == fine.touching
+    placed = [f.vertices @ p[:3, :3].T + p[:3, 3] for f, p in zip(mixed.fragments, mixed.poses)]
+    assert np.abs(placed[1].min(0) - (fine.fragments[1].vertices @ fine.poses[1][:3, :3].T
+                                     + fine.poses[1][:3, 3]).min(0)).max() < 0.02 * corpus.object_size(fine)
+    with pytest.raises(ValueError, match="comes out otherwise at 250 faces"):
+        coarse_every_other(corpus.generate("rough-clean", 3, 2, 2000), "rough-clean", 2, 250)
+
+
 def test_set_reads_params_fields_by_their_type_and_names_a_bad_one():
     """The benchmarks' --set NAME=VALUE (relicgpu.params.parse_assignments)."""
     from relicgpu.params import parse_assignments
