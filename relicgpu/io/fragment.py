@@ -192,14 +192,16 @@ def _clean_body(name: str, v: np.ndarray, f: np.ndarray, label: str, source: str
         f = f[max(pieces, key=lambda p: _area(v, f[p]))]
         v, f = _used_vertices(v, f)
         notes.append(f"{label}: fell apart into {len(pieces)} bodies once degenerate faces were removed; kept the largest")
-    f, turned = outward(v, f, rewind=describe)
+    edges = _edges(f) if describe else None  # (rewinding leaves every edge where it was)
+    f, turned = outward(v, f, rewind=describe, edges=edges)
     notes += [f"{label}: {why}" for why in turned]
-    if describe and not is_watertight(f):
+    if edges is not None and not np.all(edges[2] == 2):  # (`is_watertight`)
         notes.append(f"{label}: the mesh is not watertight (open boundary); accepted, as scans often are")
     return Fragment(name, v, f.astype(np.int32), source, tuple(notes), thinned_from=thinned_from)
 
 
-def outward(v: np.ndarray, f: np.ndarray, rewind: bool = True) -> tuple[np.ndarray, list[str]]:
+def outward(v: np.ndarray, f: np.ndarray, rewind: bool = True, edges: tuple | None = None,
+            ) -> tuple[np.ndarray, list[str]]:
     """Faces wound alike across every edge and outward, and what was turned to make them so.
 
     A scan exported inside out, or with patches wound the other way, has normals that point into
@@ -213,6 +215,7 @@ def outward(v: np.ndarray, f: np.ndarray, rewind: bool = True) -> tuple[np.ndarr
     ----------
     v : (n, 3) float
     f : (m, 3) int
+    edges : `_edges(f)` where the caller has it
 
     Returns
     -------
@@ -220,7 +223,7 @@ def outward(v: np.ndarray, f: np.ndarray, rewind: bool = True) -> tuple[np.ndarr
     turned : list of str, one line for each change made
     """
     turned = []
-    if rewind and _misrun_edges(f):
+    if rewind and _misrun_edges(*(edges or _edges(f))):
         import trimesh
 
         mesh = trimesh.Trimesh(v, f, process=False)
@@ -377,10 +380,9 @@ def _edges(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return directed, edge, count
 
 
-def _misrun_edges(f: np.ndarray) -> int:
+def _misrun_edges(directed: np.ndarray, edge: np.ndarray, count: np.ndarray) -> int:
     """How many edges of exactly two faces both faces run the same way (an edge of more faces,
-    where sheets meet, says nothing of their winding)."""
-    directed, edge, count = _edges(f)
+    where sheets meet, says nothing of their winding), from a body's `_edges`."""
     two = count[edge] == 2
     forward = directed[:, 0] < directed[:, 1]
     runs = np.bincount(edge[two], weights=forward[two], minlength=len(count))
