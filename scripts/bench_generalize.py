@@ -1,7 +1,7 @@
 """How the pipeline holds on fractures it was not tuned on (issue 16): one row per family.
 
-Families come from `relicgpu.synth.corpus` (fracture kind x scan kind, twelve in all) and the
-../shared/realdata sets with a known answer; the first row, "synth", is the control: the
+Families come from `relicgpu.synth.corpus` (fracture kind x scan kind: issue 16's twelve and the
+three of `tetra`) and the ../shared/realdata sets with a known answer; the first row, "synth", is the control: the
 project's own generator, where the pipeline was tuned. Per row:
 
   seg R / seg P   recall and precision of `relicgpu.pair.segment`'s fracture faces (the labels
@@ -32,6 +32,11 @@ same piece of the same cut, its pose and labels with it): pieces of one object a
 resolutions, as Breaking Bad's are (190 to 15,000 faces a piece). Where a family's cut comes out
 otherwise at N faces (rough and vessel cuts do), the case is skipped and says so.
 
+--decimate-every-other N decimates every other piece of each multi-piece object towards N faces
+(`relicgpu.synth.mixed.decimated`, within 0.5% of the size): pieces cut from one mesh at different
+resolutions that share their break, Breaking Bad's case (with the `tetra` families, its faceted
+breaks). --coarse-faces's pieces are remeshes of their own whose breaks stand off each other.
+
 --every-pair also runs `match_pair` on every pair of pieces of each multi-piece object and prints
 a second table: of the touching pairs, right / near (accepted within 5 degrees and 3% of the
 size, over the bar) / wrong (accepted farther off) / missed; of the pairs that do not touch, the
@@ -53,6 +58,7 @@ import numpy as np
 
 from relicgpu.heap.evaluate import relative_pose_error, score
 from relicgpu.synth import corpus
+from relicgpu.synth.mixed import decimated
 from relicgpu.pair.icp import invert
 from relicgpu.params import SEGMENTATIONS, Params, parse_assignments, second_reading_params, with_segmentations
 
@@ -251,6 +257,8 @@ def run(args) -> dict:
             except ValueError as exc:
                 print(f"[{k}/{len(plan)}] {fam} seed {seed}: skipped ({exc})", file=sys.stderr, flush=True)
                 continue
+        if args.decimate_every_other and n not in (None, 2):
+            result = decimated(result, args.decimate_every_other)
         case["pieces"] = len(result.fragments)
         case["faces_per_piece"] = float(np.mean([len(f.faces) for f in result.fragments]))
         case["true_share"] = float(np.mean(np.concatenate(result.fracture_faces)))
@@ -364,6 +372,8 @@ def main(argv=None) -> int:
     ap.add_argument("--multi-faces", type=int, help="faces a piece of multi-piece objects (quick 800, full 2000)")
     ap.add_argument("--coarse-faces", type=int,
                     help="make every other piece of each multi-piece object again at this many faces")
+    ap.add_argument("--decimate-every-other", type=int,
+                    help="decimate every other piece of each multi-piece object towards this many faces")
     ap.add_argument("--backend", default="numpy", help="numpy, warp-cpu, ... (default numpy)")
     ap.add_argument("--workers", type=int, default=1, help="assemble's local workers (default 1)")
     ap.add_argument("--two-piece", action=argparse.BooleanOptionalAction, default=True,

@@ -36,7 +36,8 @@ def test_family_builds_with_sane_labels_on_the_cut(family):
     placed = r.placed_back()
     for i, (frag, lab) in enumerate(zip(placed, r.fracture_faces)):
         assert lab.shape == (len(frag.faces),) and lab.dtype == bool
-        assert 0.01 <= lab.mean() <= 0.6, f"fracture share {lab.mean():.3f}"
+        # a faceted break keeps its faces through decimation where the smooth skin loses them
+        assert 0.01 <= lab.mean() <= (0.8 if family == "tetra-noisy" else 0.6), f"fracture share {lab.mean():.3f}"
         if not family.startswith("vessel"):  # a vessel's cut is only the thin band: too few faces to test like this
             other = placed[1 - i]
             d = _distance_to(frag.vertices[frag.faces].mean(1), other.vertices, other.faces)
@@ -131,3 +132,15 @@ def test_bench_quick_runs_on_one_family(tmp_path):
     assert c["touching"] + c["apart"] == 10 and c["touching"] == doc["cases"][1]["assembly"]["touching"]
     assert c["right"] + c["near"] + c["wrong"] + c["missed"] == c["touching"] and 0 <= c["apart_accepted"] <= c["apart"]
     assert "| rough-coarse | " + str(c["touching"]) + " | " + str(c["right"]) + " |" in proc.stdout
+
+
+def test_decimated_pieces_keep_their_break_and_pose():
+    from relicgpu.synth.mixed import decimated
+    r = _case("tetra-clean", pieces=2, faces=800)
+    d = decimated(r, 200)
+    assert len(d.fragments[1].faces) < len(r.fragments[1].faces) and d.fragments[0] is r.fragments[0]
+    placed, before = d.placed_back()[1], r.placed_back()[1]
+    # within the tolerance (0.5% of the size) of the piece it was, labels carried to its faces
+    assert _distance_to(placed.vertices, before.vertices, before.faces).max() < 0.006 * r.params["size"]
+    lab = d.fracture_faces[1]
+    assert lab.shape == (len(placed.faces),) and 0.05 < lab.mean() < 0.95

@@ -7,6 +7,9 @@ fracture kinds (`FRACTURES`)
     smooth   a height-field cut of a few long waves only (curved, no roughness)
     voronoi  flat cuts: the object split into the Voronoi cells of random seeds (Blender's Cell Fracture)
     vessel   a thin-walled open vessel (wall 2-5% of its size) broken by mildly rough cuts
+    tetra    the cells of a coarse tetrahedral mesh (edges ~7% of the size) grouped about random seeds: faceted,
+             blocky breaks along tetrahedron faces, as Breaking Bad's simulated fractures; any solid, the
+             thin vessel among them
 scan kinds (`SCANS`)
     clean    the exact boolean pieces, long edges split to the sampling length
     noisy    dense surface samples with noise along the normal (0.02-0.1% of the size), a smoothing
@@ -42,7 +45,7 @@ from ..io.fragment import Fragment
 from .scanning import _invert_rigid, _random_placement
 from .truth import SynthResult, _point_triangle_distance, _touching_pairs
 
-FRACTURES = ("rough", "smooth", "voronoi", "vessel")
+FRACTURES = ("rough", "smooth", "voronoi", "vessel", "tetra")
 SCANS = ("clean", "noisy", "coarse")
 FAMILIES = tuple(f"{f}-{s}" for f in FRACTURES for s in SCANS)
 SOLIDS = ("pebble", "block", "jar")  # of the non-vessel kinds, chosen by seed
@@ -83,7 +86,8 @@ def generate(family: str, pieces: int = 2, seed: int = 0, faces: int = 3000, sca
         raise ValueError(f"pieces >= 1 and faces >= 100 expected, got {pieces}, {faces}")
     ss = np.random.SeedSequence([int(seed), zlib.crc32(family.encode())])
     shape_rng, cut_rng, scan_rng, scatter_rng = (np.random.default_rng(s) for s in ss.spawn(4))
-    solid_name = "vessel" if kind == "vessel" else SOLIDS[int(seed) % len(SOLIDS)]
+    solids = SOLIDS + ("vessel",) if kind == "tetra" else SOLIDS
+    solid_name = "vessel" if kind == "vessel" else solids[int(seed) % len(solids)]
     target = COARSE_FACES if scan == "coarse" else int(faces)
     # sampling length h: triangles of about 0.433 h^2 over the skin and the cut area
     probe, _ = _solid(solid_name, np.random.default_rng(ss.spawn(1)[0]), 0.03)
@@ -91,7 +95,8 @@ def generate(family: str, pieces: int = 2, seed: int = 0, faces: int = 3000, sca
     h = 1.4 * math.sqrt(area / (0.433 * pieces * target))  # 1.4: measured, refinement and slivers add faces
     obj, wall = _solid(solid_name, shape_rng, h)
     obj_id = obj.original_id()
-    parts = _voronoi(obj, pieces, cut_rng) if kind == "voronoi" else _heightfield_cuts(obj, pieces, kind, h, cut_rng)
+    cut = {"voronoi": _voronoi, "tetra": _tetra}.get(kind)
+    parts = cut(obj, pieces, cut_rng) if cut else _heightfield_cuts(obj, pieces, kind, h, cut_rng)
     if scan == "clean":
         parts = [p.refine_to_length(1.5 * h) for p in parts]
     exact = [_arrays(p, obj_id) for p in parts]
@@ -332,6 +337,49 @@ def _voronoi(obj, pieces: int, rng: np.random.Generator) -> list:
         if len(cells) == pieces:
             return cells
     raise RuntimeError(f"corpus: no {pieces} single-body Voronoi cells in {MAX_ATTEMPTS} draws")
+
+
+def _tetra(obj, pieces: int, rng: np.random.Generator, spacing: float = 0.08) -> list:
+    """The object split along the faces of a tetrahedral mesh (body-centred cubic points at `spacing`,
+    jittered): each tetrahedron goes to the nearest of `pieces` random seeds; a cell's stray bodies
+    join the neighbouring piece they fuse with."""
+    import manifold3d as mf
+    from scipy.spatial import Delaunay
+
+    # the box rounded out, so that the object made at another resolution is cut by the same cells
+    box = np.array(obj.bounding_box())
+    lo, hi = np.floor(box[:3] / 0.05) * 0.05, np.ceil(box[3:] / 0.05) * 0.05
+    axes = [np.arange(lo[d] - spacing, hi[d] + 2 * spacing, spacing) for d in range(3)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    g = np.vstack([g, g + 0.5 * spacing])  # body-centred cubic: well-shaped tetrahedra
+    g += rng.uniform(-0.12, 0.12, g.shape) * spacing
+    tets = Delaunay(g).simplices
+    p = g[tets]
+    inverted = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) < 0
+    tets[inverted] = tets[inverted][:, [0, 2, 1, 3]]
+    centre = g[tets].mean(1)
+    sides = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    min_volume = MIN_VOLUME_SHARE * obj.volume() / pieces
+    for _ in range(MAX_ATTEMPTS):
+        seeds = lo + (hi - lo) * rng.uniform(0.15, 0.85, (pieces, 3))
+        owner = np.argmin(((centre[:, None] - seeds[None]) ** 2).sum(-1), axis=1)
+        main, strays = [], []
+        for i in range(pieces):
+            cell = mf.Manifold.batch_boolean([_manifold(g[t], sides) for t in tets[owner == i]], mf.OpType.Add)
+            bodies = sorted((obj ^ cell).decompose(), key=lambda s: -s.volume())
+            if not bodies or bodies[0].volume() < min_volume:
+                break
+            main.append(bodies[0])
+            strays += bodies[1:]
+        else:
+            for stray in strays:
+                joined = next((k for k, m in enumerate(main) if len((m + stray).decompose()) == 1), None)
+                if joined is None:
+                    break
+                main[joined] = main[joined] + stray
+            else:
+                return main
+    raise RuntimeError(f"corpus: no {pieces} single-body tetrahedral cells in {MAX_ATTEMPTS} draws")
 
 
 # --- scanning --------------------------------------------------------------
