@@ -98,6 +98,7 @@ class Params:
     icp_points: int = 1500           # fracture points sampled per fragment ...
     sample_min_prob: float = 0.2     # ... from faces of at least this fracture likelihood, weighted by it
     sample_min_share: float = 0.02   # under this likelihood-weighted area share: the whole surface, uniformly
+    face_sample_step: float = 0.015  # faces with an edge over twice this add points inside (SurfaceSample.sides)
     icp_iterations: int = 40
     icp_tolerance: float = 1e-5      # stop when the mean distance d changes less than this
     verify_at_most: int = 6          # fits verified per pair, best-touching first, until one is accepted

@@ -8,6 +8,7 @@ import pytest
 
 from relicgpu import match_pair, synth
 from relicgpu.pair.icp import rotation_angle_deg
+from relicgpu.params import Params
 
 
 def _pose_error(result, a, b, truth):
@@ -112,6 +113,22 @@ def test_a_fragment_without_fracture_is_sampled_whole_with_uniform_weights():
     assert np.all(p.sample.fracture_weight == 1.0)
     spread = np.ptp(p.sample.fracture, axis=0)
     assert np.all(spread > 1.9)  # both sides of the unit sphere
+
+
+def test_vertices_without_a_normal_stay_out_of_the_samples():
+    """A vertex of degenerate faces only (a boolean's sliver, an unused vertex) has no normal; the
+    point-pair tables divide by the normals' lengths, so such points must not be sampled."""
+    import trimesh
+    from relicgpu.io.fragment import Fragment
+    from relicgpu.pair.prepare import prepare
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    v = np.vstack([sphere.vertices, [[3.0, 0.0, 0.0]], sphere.vertices[:1]])  # an unused vertex, a duplicate
+    n = len(sphere.vertices)
+    f = np.vstack([sphere.faces, [[0, n + 1, 0]]])  # a face of no area on the duplicate
+    p = prepare(Fragment("sphere", v, f), backend="numpy")
+    for normals in (p.sample.fracture_normals, p.sample.normals, p.sample.fracture_plane_normals):
+        assert np.allclose(np.linalg.norm(normals, axis=1), 1.0)
+    assert not np.any(np.all(p.sample.surface == [3.0, 0.0, 0.0], axis=1))
 
 
 def test_a_wrong_fit_of_a_thin_wall_is_refused_for_not_facing():
@@ -230,3 +247,43 @@ def test_a_thin_wall_whose_skins_lie_beside_the_partners_is_refused():
     ver = verify_mesh(pa.sample, pb.sample, off.transform, be, Params(axis_apart=None), scale, index_cache(be),
                       Params().max_rmse)
     assert not ver.accepted and "thin wall" in ver.reason
+
+
+def test_face_points_fill_long_faces_only():
+    from relicgpu.pair.prepare import face_points
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.01, 0, 1], [0, 0.01, 1]], float)
+    f = np.array([[0, 1, 2], [3, 4, 5]])
+    points, face = face_points(v, f, 0.1)
+    assert np.all(face == 0)  # the small face adds none
+    assert np.allclose(points[:, 2], 0) and np.all(points[:, :2] >= -1e-12) and np.all(points.sum(1) <= 1 + 1e-12)
+    assert not np.any(np.all(np.isclose(points[:, None], v[:3][None]), axis=2))  # its corners are vertices already
+    gaps = np.sort(np.linalg.norm(points[:, None] - points[None], axis=2), axis=1)[:, 1]
+    # the longest edge (1.41) in 15 parts of at most the step: a grid of 16 points a side, less the corners
+    assert gaps.max() <= 0.1 and len(points) == (16 * 17) // 2 - 3
+    assert len(face_points(v, f, 0.75)[0]) == 0  # no edge longer than twice the step
+
+
+def test_a_fine_piece_beside_a_decimated_one_is_not_read_as_sunk():
+    """Pieces of one cut at different resolutions (Breaking Bad's): at the true pose the fine
+    piece's skin beside the seam lies between the coarse piece's far-apart vertices, whose
+    normals read it as sunk; points inside the coarse piece's large faces read it right."""
+    from relicgpu.backends import resolve
+    from relicgpu.pair.meshfit import verify_mesh
+    from relicgpu.pair.prepare import prepare
+    from relicgpu.pair.verify import index_cache, surface_penetration
+    from relicgpu.synth import corpus
+    from relicgpu.synth.mixed import decimated
+    be = resolve("numpy")
+    r = decimated(corpus.generate("tetra-clean", 4, 2, 3000), 300)
+    truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
+    scale = r.params["size"]
+    sunk = {}
+    for step in (0.0, Params().face_sample_step):
+        params = Params(face_sample_step=step)
+        a, b = (prepare(r.fragments[k], params, be, scale=scale) for k in (0, 1))
+        index_of = index_cache(be)
+        sunk[step] = surface_penetration(a.sample, b.sample, truth, params.penetration_depth * scale, index_of)
+        if step > 0:
+            assert b.sample.sides is not None and len(b.sample.sides[0]) > 2 * len(b.sample.surface)
+            assert verify_mesh(a.sample, b.sample, truth, be, params, scale, index_of, params.max_rmse).accepted
+    assert sunk[0.0] > Params().max_surface_penetration > sunk[Params().face_sample_step]

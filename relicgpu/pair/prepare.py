@@ -97,7 +97,7 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
 
     prob = sampling_prob(seg, params)
     sample = _surface_sample(fragment, seg, prob, params.icp_points, params.ppf_normal_radius * scale,
-                             params.crease_angle_deg)
+                             params.crease_angle_deg, params.face_sample_step * scale)
     centres, skin = fragment.vertices[fragment.faces].mean(1), ~seg.fracture_faces
     wall = wall_thickness(centres, seg.normals, seg.areas, skin, at_most=WALL_FACES)
     axis = skin_axis(centres[skin], seg.normals[skin], seg.areas[skin], thin=wall < params.region_thin_wall)
@@ -146,10 +146,12 @@ def sampling_prob(seg, params: Params) -> np.ndarray:
 
 
 def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, plane_radius: float,
-                    crease_angle: float) -> SurfaceSample:
+                    crease_angle: float, step: float = 0.0) -> SurfaceSample:
     """An even subsample of the vertices of faces of fracture likelihood prob (F,) > 0 (each
     weighted by the largest likelihood of its faces), of all vertices (with normals), and of
-    points along the edges sharper than `crease_angle` degrees."""
+    points along the edges sharper than `crease_angle` degrees; and where faces have an edge
+    longer than 2 `step`, the surface read for sides (`SurfaceSample.sides`): the vertices and
+    points inside those faces (`face_points`; 0: none)."""
     v, f = fragment.vertices, fragment.faces
     normals = vertex_normals(v, f, seg.normals, seg.areas)
     frac_faces = np.flatnonzero(prob > 0)
@@ -158,15 +160,50 @@ def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, pl
     np.maximum.at(vertex_weight, f[frac_faces].ravel(), np.repeat(prob[frac_faces], 3))
     vertex_region = np.full(len(v), -1)
     vertex_region[f[frac_faces].ravel()] = np.repeat(seg.face_region[frac_faces], 3)
-    frac_vertices = np.flatnonzero(vertex_weight > 0)
+    oriented = np.flatnonzero(np.linalg.norm(normals, axis=1) > 0.5)  # a vertex of degenerate faces has no normal
+    frac = oriented[vertex_weight[oriented] > 0]
     # spread evenly over space, not drawn at random: the same sample up to units (issue 15)
-    frac_vertices = frac_vertices[even_subsample(v[frac_vertices], n_points)]
-    surf = even_subsample(v, 2 * n_points)
-    plane_normals = smoothed_normals(v[frac_vertices], normals[frac_vertices], plane_radius)
+    frac = frac[even_subsample(v[frac], n_points)]
+    surf = oriented[even_subsample(v[oriented], 2 * n_points)]
+    plane_normals = smoothed_normals(v[frac], normals[frac], plane_radius)
     sharp = seg.topology.edge_vertices[seg.edge_angle > crease_angle]
     creases = crease_points(v, sharp, sample_spacing(v[surf]), 2 * n_points)
-    return SurfaceSample(v[frac_vertices], vertex_region[frac_vertices], normals[frac_vertices], v[surf],
-                         normals[surf], plane_normals, fracture_weight=vertex_weight[frac_vertices], creases=creases)
+    sample = SurfaceSample(v[frac], vertex_region[frac], normals[frac], v[surf], normals[surf], plane_normals,
+                           fracture_weight=vertex_weight[frac], creases=creases)
+    inner, face = face_points(v, f, step) if step > 0 else (np.zeros((0, 3)), np.zeros(0, np.int64))
+    inner, face = (x[np.linalg.norm(seg.normals[face], axis=1) > 0.5] for x in (inner, face))  # a sliver has none
+    if not len(inner):
+        return sample
+    points, point_normals = np.vstack([v[oriented], inner]), np.vstack([normals[oriented], seg.normals[face]])
+    keep = even_subsample(points, 2 * n_points)
+    return replace(sample, sides=(points[keep], point_normals[keep]))
+
+
+def face_points(vertices: np.ndarray, faces: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the faces with an edge longer than 2 `step`, off their corners: a barycentric grid
+    of m = ceil(longest edge / step) parts a side, edges included (two faces share those).
+
+    A coarse mesh's vertices stand too far apart for a fine partner's points to read their side of
+    it on the nearest one's normal: its skin beside the seam reads as sunk.
+
+    Returns
+    -------
+    points : (M, 3) float
+    face : (M,) int, the face each lies on
+    """
+    tri = vertices[faces]
+    longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(1)
+    big = np.flatnonzero(longest > 2 * step)
+    parts = np.ceil(longest[big] / step).astype(np.int64)
+    points, face = [np.zeros((0, 3))], [np.zeros(0, np.int64)]
+    for m in np.unique(parts):
+        i, j = np.meshgrid(np.arange(m + 1), np.arange(m + 1), indexing="ij")
+        bary = np.c_[i.ravel(), j.ravel(), m - i.ravel() - j.ravel()] / m
+        bary = bary[(bary[:, 2] >= 0) & ((bary > 0).sum(1) >= 2)]  # corners are the vertices
+        these = big[parts == m]
+        points.append(np.einsum("kc,fcd->fkd", bary, tri[these]).reshape(-1, 3))
+        face.append(np.repeat(these, len(bary)))
+    return np.vstack(points), np.concatenate(face)
 
 
 def outline_points(vertices: np.ndarray, faces: np.ndarray, seg, radius: float, spread: float,

@@ -47,10 +47,25 @@ class SurfaceSample:
     wall: float = np.inf  # the wall's thickness relative to the piece's size where it is a shell
     # (`walls.wall_thickness`), else inf
     axis: Axis | None = None  # the skin's axis of revolution (`revolution.skin_axis`), else None
+    # (Q',3) points and normals on which another surface's points near it read their side of this
+    # one (`surface_penetration`): a coarse mesh's vertices and points inside its large faces; None: `surface`
+    sides: tuple[np.ndarray, np.ndarray] | None = None
 
     def weights(self) -> np.ndarray:
         """(P,) weight of each fracture point: `fracture_weight`, or 1 where none was given (clouds)."""
         return np.ones(len(self.fracture)) if self.fracture_weight is None else self.fracture_weight
+
+    def side_sample(self) -> tuple[np.ndarray, np.ndarray]:
+        """(Q',3) points and their (Q',3) outward normals to read a side on: `sides`, else `surface`."""
+        return self.sides if self.sides is not None else (self.surface, self.normals)
+
+
+def side_of(points: np.ndarray, surface: np.ndarray, normals: np.ndarray, index_of) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) signed distance of each of (N,3) points along the outward normal (M,3) of the nearest
+    of (M,3) `surface` points (negative: inside), and (N,) the distance to that point."""
+    idx, dist = index_of(surface).query(points)
+    idx = np.asarray(idx, np.int64)
+    return np.einsum("ij,ij->i", points - surface[idx], normals[idx]), np.asarray(dist)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, areas: np.ndarray) -> np.ndarray:
@@ -134,11 +149,12 @@ def _inside_share(points: np.ndarray, other: SurfaceSample, depth: float, contac
         points = points[np.asarray(d) > 2 * contact]  # the contact zone touches by design
         if len(points) == 0:
             return 0.0
-    idx, dist = index_of(other.surface).query(points)
-    idx = np.asarray(idx, np.int64)
-    signed = np.einsum("ij,ij->i", points - other.surface[idx], other.normals[idx])
+    # on the vertices, not `side_sample`: at up to 8 depths a coarse mesh's points inside its faces
+    # read a thin wall's far face (corpus vessel-coarse seed 1, 5 pieces, pieces 3-4 at their true
+    # pose: 0.15 of the points inside instead of 0.02)
+    signed, dist = side_of(points, other.surface, other.normals, index_of)
     # far from the other surface the nearest normal says nothing about inside or outside
-    near = np.asarray(dist) < 8 * depth
+    near = dist < 8 * depth
     return float(np.sum((signed < -depth) & near)) / len(points)
 
 
@@ -147,10 +163,8 @@ def surface_penetration(a: SurfaceSample, b: SurfaceSample, transform: np.ndarra
     `depth` behind the nearest surface point of the other, by that point's outward normal,
     counting only points within 3 depths of it (farther, the nearest normal says little)."""
     def one_way(points, other):
-        idx, dist = index_of(other.surface).query(points)
-        idx = np.asarray(idx, np.int64)
-        signed = np.einsum("ij,ij->i", points - other.surface[idx], other.normals[idx])
-        return float(np.mean((signed < -depth) & (np.asarray(dist) < 3 * depth))) if len(points) else 0.0
+        signed, dist = side_of(points, *other.side_sample(), index_of)
+        return float(np.mean((signed < -depth) & (dist < 3 * depth))) if len(points) else 0.0
 
     return max(one_way(apply(transform, b.surface), a), one_way(apply(np.linalg.inv(transform), a.surface), b))
 
