@@ -287,3 +287,14 @@ def test_a_fine_piece_beside_a_decimated_one_is_not_read_as_sunk():
             assert b.sample.sides is not None and len(b.sample.sides[0]) > 2 * len(b.sample.surface)
             assert verify_mesh(a.sample, b.sample, truth, be, params, scale, index_of, params.max_rmse).accepted
     assert sunk[0.0] > Params().max_surface_penetration > sunk[Params().face_sample_step]
+
+
+def test_a_coarse_vessels_piece_reads_as_a_thin_wall_whatever_its_skin_reads():
+    """Corpus vessel-coarse seed 1: the first reading takes half of a piece's skin for fracture and
+    its narrow band for skin; the wall is read on every face, so the thin-wall checks still apply."""
+    from relicgpu.pair.prepare import prepare
+    from relicgpu.synth import corpus
+    r = corpus.generate("vessel-coarse", 5, 1)
+    p = prepare(r.fragments[0], backend="numpy", scale=r.params["size"])
+    assert p.fracture_faces.mean() > 0.4  # the reading is off (truth: a quarter of the faces)
+    assert 0.01 < p.sample.wall < Params().region_thin_wall

@@ -99,7 +99,9 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
     sample = _surface_sample(fragment, seg, prob, params.icp_points, params.ppf_normal_radius * scale,
                              params.crease_angle_deg, params.face_sample_step * scale)
     centres, skin = fragment.vertices[fragment.faces].mean(1), ~seg.fracture_faces
-    wall = wall_thickness(centres, seg.normals, seg.areas, skin, at_most=WALL_FACES)
+    # read on every face, not the reading's skin: a coarse vessel's skin read as part fracture and
+    # its band as skin leave under half of that skin facing another face (corpus vessel-coarse)
+    wall = wall_thickness(centres, seg.normals, seg.areas, np.ones(len(skin), bool), at_most=WALL_FACES)
     axis = skin_axis(centres[skin], seg.normals[skin], seg.areas[skin], thin=wall < params.region_thin_wall)
     sample = replace(sample, outline=outline_points(fragment.vertices, fragment.faces, seg, params.outline_radius * scale,
                                                     params.outline_spread, 2 * params.icp_points),
