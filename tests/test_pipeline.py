@@ -289,6 +289,32 @@ def test_a_fine_piece_beside_a_decimated_one_is_not_read_as_sunk():
     assert sunk[0.0] > Params().max_surface_penetration > sunk[Params().face_sample_step]
 
 
+def test_a_fine_piece_beside_a_decimated_one_is_not_read_as_interpenetrating():
+    """Corpus tetra-clean seed 1, 4 pieces, every other decimated: at the true pose of pieces 1
+    (420 faces) and 2 (1,626), the fine skin beside the seam lies in the gaps between the coarse
+    fracture's few corners, outside the contact zone drawn around them, and reads as inside;
+    the zone drawn on points inside the fracture faces too (`SurfaceSample.seam_zone`) leaves it out."""
+    from dataclasses import replace
+
+    from relicgpu.backends import resolve
+    from relicgpu.pair.meshfit import verify_mesh
+    from relicgpu.pair.prepare import prepare
+    from relicgpu.pair.verify import index_cache
+    from relicgpu.synth import corpus
+    from relicgpu.synth.mixed import decimated
+    be, params = resolve("numpy"), Params()
+    r = decimated(corpus.generate("tetra-clean", 4, 1, 3000), 300)
+    truth = np.linalg.inv(r.poses[1]) @ r.poses[2]
+    scale = r.params["size"]
+    a, b = (prepare(r.fragments[k], params, be, scale=scale) for k in (1, 2))
+    assert a.sample.seam_zone is not None and len(a.sample.seam_zone) > 4 * len(a.sample.fracture)
+    corners = [replace(s, seam_zone=None) for s in (a.sample, b.sample)]
+    before = verify_mesh(*corners, truth, be, params, scale, index_cache(be), params.max_rmse)
+    after = verify_mesh(a.sample, b.sample, truth, be, params, scale, index_cache(be), params.max_rmse)
+    assert before.penetration > params.max_penetration > after.penetration
+    assert after.accepted, after.reason
+
+
 def test_a_coarse_vessels_piece_reads_as_a_thin_wall_whatever_its_skin_reads():
     """Corpus vessel-coarse seed 1: the first reading takes half of a piece's skin for fracture and
     its narrow band for skin; the wall is read on every face, so the thin-wall checks still apply."""

@@ -50,6 +50,9 @@ class SurfaceSample:
     # (Q',3) points and normals on which another surface's points near it read their side of this
     # one (`surface_penetration`): a coarse mesh's vertices and points inside its large faces; None: `surface`
     sides: tuple[np.ndarray, np.ndarray] | None = None
+    # (Z,3) the fracture's vertices and points inside its large faces: where a partner's points
+    # touch by design (`_inside_share`'s contact zone); None: `fracture`
+    seam_zone: np.ndarray | None = None
 
     def weights(self) -> np.ndarray:
         """(P,) weight of each fracture point: `fracture_weight`, or 1 where none was given (clouds)."""
@@ -144,8 +147,11 @@ def _inside_share(points: np.ndarray, other: SurfaceSample, depth: float, contac
     surface point of `other`, by that point's outward normal."""
     if len(points) == 0:
         return 0.0
-    if len(other.fracture):
-        _, d = index_of(other.fracture).query(points)
+    zone = other.fracture if other.seam_zone is None else other.seam_zone
+    if len(zone):
+        # on a coarse mesh's fracture faces too: its few corners leave gaps in the zone that a
+        # fine partner's skin beside the seam reads as inside (corpus tetra-clean decimated)
+        _, d = index_of(zone).query(points)
         points = points[np.asarray(d) > 2 * contact]  # the contact zone touches by design
         if len(points) == 0:
             return 0.0
