@@ -153,8 +153,7 @@ def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, pl
     weighted by the largest likelihood of its faces), of all vertices (with normals), and of
     points along the edges sharper than `crease_angle` degrees; and where faces have an edge
     longer than 2 `step`, the surface read for sides (`SurfaceSample.sides`): the vertices and
-    points inside those faces (`face_points`; 0: none), and the contact zone
-    (`SurfaceSample.seam_zone`): the fracture sample and the points inside fracture faces."""
+    points inside those faces (`face_points`; 0: none)."""
     v, f = fragment.vertices, fragment.faces
     normals = vertex_normals(v, f, seg.normals, seg.areas)
     frac_faces = np.flatnonzero(prob > 0)
@@ -179,9 +178,7 @@ def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, pl
         return sample
     points, point_normals = np.vstack([v[oriented], inner]), np.vstack([normals[oriented], seg.normals[face]])
     keep = even_subsample(points, 2 * n_points)
-    zone = np.vstack([sample.fracture, inner[prob[face] > 0]])
-    return replace(sample, sides=(points[keep], point_normals[keep]),
-                   seam_zone=zone[even_subsample(zone, 2 * n_points)])
+    return replace(sample, sides=(points[keep], point_normals[keep]))
 
 
 def face_points(vertices: np.ndarray, faces: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
