@@ -144,8 +144,11 @@ def test_a_wrong_fit_of_a_thin_wall_is_refused_for_not_facing():
     r = corpus.generate("vessel-coarse", pieces=2, seed=0, faces=2000)
     a, b = r.fragments
     truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
-    # (without the near-flat facets too, whose fit of this pair is the right one and comes first)
-    old = Params(min_facing=0.0, max_surface_penetration=1.0, grown_outline=0.0)
+    # (without the near-flat facets too, whose fit of this pair is the right one and comes first,
+    # and the thin walls' checks, skin and axes, each of which refuses this fit on its own since
+    # the wall is read on the sides)
+    old = Params(min_facing=0.0, max_surface_penetration=1.0, grown_outline=0.0, wall_skin=None,
+                 axis_apart=None)
     before = match_pair(a, b, old, backend="numpy")
     assert before.accepted
     assert _pose_error(before, a, b, truth)[0] > 90  # the case the checks are for
@@ -325,3 +328,17 @@ def test_a_coarse_vessels_piece_reads_as_a_thin_wall_whatever_its_skin_reads():
     p = prepare(r.fragments[0], backend="numpy", scale=r.params["size"])
     assert p.fracture_faces.mean() > 0.4  # the reading is off (truth: a quarter of the faces)
     assert 0.01 < p.sample.wall < Params().region_thin_wall
+
+
+def test_a_decimated_vessels_pieces_read_as_thin_walls():
+    """Corpus vessel-clean seed 9, 8 pieces, every other decimated: the centres of a decimated wall's
+    large faces stand off each other's normals and their distances vary by more than twice (read
+    as no wall, so the thin-wall checks never applied); read on the sides, every piece is a wall."""
+    from relicgpu.heap.assembly import common_scale
+    from relicgpu.pair.prepare import prepare
+    from relicgpu.synth import corpus
+    from relicgpu.synth.mixed import decimated
+    r = decimated(corpus.generate("vessel-clean", 8, 9, 3000), 300)
+    scale = common_scale(r.fragments, Params())
+    walls = [prepare(f, backend="numpy", scale=scale).sample.wall for f in r.fragments]
+    assert all(0.005 < w < Params().region_thin_wall for w in walls), walls

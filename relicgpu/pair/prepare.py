@@ -100,8 +100,12 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
                              params.crease_angle_deg, params.face_sample_step * scale)
     centres, skin = fragment.vertices[fragment.faces].mean(1), ~seg.fracture_faces
     # read on every face, not the reading's skin: a coarse vessel's skin read as part fracture and
-    # its band as skin leave under half of that skin facing another face (corpus vessel-coarse)
-    wall = wall_thickness(centres, seg.normals, seg.areas, np.ones(len(skin), bool), at_most=WALL_FACES)
+    # its band as skin leave under half of that skin facing another face (corpus vessel-coarse);
+    # on a coarse mesh on its sides: the centres of a decimated wall's large faces stand off each
+    # other's normals, and the distances between them vary too much to read a wall
+    at, normals, weights = ((centres, seg.normals, seg.areas) if sample.sides is None
+                            else (*sample.sides, np.ones(len(sample.sides[0]))))  # evenly spread
+    wall = wall_thickness(at, normals, weights, np.ones(len(at), bool), at_most=WALL_FACES)
     axis = skin_axis(centres[skin], seg.normals[skin], seg.areas[skin], thin=wall < params.region_thin_wall)
     sample = replace(sample, outline=outline_points(fragment.vertices, fragment.faces, seg, params.outline_radius * scale,
                                                     params.outline_spread, 2 * params.icp_points),
