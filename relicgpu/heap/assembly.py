@@ -6,7 +6,7 @@
          -> spanning forest of verified matches, best first,
             refusing merges that interpenetrate or break a closed loop
          -> what stayed apart matched against the merged placed groups (`grow`; cached per group pair)
-         -> joint refinement (ICP of each fragment against all its placed neighbours)
+         -> joint refinement: the pose graph, then each fragment settled on every neighbour it touches
          -> assembly.json, assembly.glb, merged.stl
 
 Every fragment is prepared at the same scale (the median fragment size, or
@@ -42,6 +42,7 @@ from .grouping import heap_probability
 from .describe import describe
 from .grow import grow_groups
 from .outputs import closed_solid, write_outputs
+from .settle import settle
 from .screen import SCREEN_LCS_WEIGHT, _ppf_screen_job, _screen_blocks, normalised_support, screen, select_candidates
 from ..params import Params
 from ..pair.icp import invert
@@ -341,6 +342,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
     used += [e for e, _, _ in joins]
     t0 = time.perf_counter()
     pose = refine_poses(pose, group, used, samples)
+    pose = settle(pose, group, samples, params, scale, be)
     timings["refine"] = time.perf_counter() - t0
 
     names = [f.name for f in fragments]
