@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..pair.icp import apply, axis_rotation
+from ..pair.icp import apply, plane_step
 from ..pair.verify import SurfaceSample
 from ..params import Params
 
@@ -103,11 +103,7 @@ def _steps(points: np.ndarray, point_normals: np.ndarray, target: np.ndarray, ta
         a = np.concatenate([np.cross((p - centre) / radius, n), n], axis=1)
         b = -np.einsum("ij,ij->i", p - q, n) / radius
         x = np.linalg.solve(a.T @ a + 1e-12 * np.eye(6), a.T @ b)
-        turn = axis_rotation(x[:3] / (np.linalg.norm(x[:3]) or 1.0), float(np.linalg.norm(x[:3])))
-        step = np.eye(4)
-        step[:3, :3] = turn
-        step[:3, 3] = centre - turn @ centre + radius * x[3:]
-        pose = step @ pose
+        pose = plane_step(x, centre, radius) @ pose
         if np.linalg.norm(x) < 1e-9:
             break
     return pose

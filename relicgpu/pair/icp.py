@@ -250,6 +250,16 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
     return poses, share
 
 
+def plane_step(x: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """The (4, 4) rigid step of a linearised point-to-plane solve `x` (6,), in units of `radius`:
+    p -> turn (p - centre) + centre + radius * x[3:], the turn of |x[:3]| radians about x[:3]."""
+    turn = axis_rotation(x[:3] / (np.linalg.norm(x[:3]) or 1.0), float(np.linalg.norm(x[:3])))
+    step = np.eye(4)
+    step[:3, :3] = turn
+    step[:3, 3] = centre - turn @ centre + radius * x[3:]
+    return step
+
+
 def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, init: np.ndarray,
                           backend, iterations: int, cutoff: float, index=None, weights: np.ndarray | None = None,
                           target_weights: np.ndarray | None = None) -> np.ndarray:
@@ -300,11 +310,7 @@ def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals
             except np.linalg.LinAlgError:
                 active[h] = False
                 continue
-            turn = axis_rotation(x[:3] / (np.linalg.norm(x[:3]) or 1.0), float(np.linalg.norm(x[:3])))
-            step = np.eye(4)  # p -> turn (p - c) + c + t
-            step[:3, :3] = turn
-            step[:3, 3] = centre[k, 0] - turn @ centre[k, 0] + radius * x[3:]
-            poses[h] = step @ poses[h]
+            poses[h] = plane_step(x, centre[k, 0], radius) @ poses[h]
             if np.linalg.norm(x) < 1e-9:
                 active[h] = False
     return poses[0] if single else poses

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .icp import apply, axis_rotation, invert
+from .icp import apply, invert, plane_step
 
 # Skin points of one piece within NEAR of the other's skin are held to it, extrapolated from the
 # other's skin points within REACH of the nearest one, turned within AGREE (cosine) of the point's
@@ -219,11 +219,7 @@ def seam_polish(fracture_a: np.ndarray, fracture_normals_a: np.ndarray, fracture
                 weight = min(weight, MAX_WEIGHT)
             lhs = jac_f.T @ jac_f + weight * jac_s.T @ jac_s + 1e-12 * np.eye(6)
             x = np.linalg.solve(lhs, jac_f.T @ res_f + weight * jac_s.T @ res_s)
-            turn = axis_rotation(x[:3] / (np.linalg.norm(x[:3]) or 1.0), float(np.linalg.norm(x[:3])))
-            step = np.eye(4)
-            step[:3, :3] = turn
-            step[:3, 3] = centre - turn @ centre + radius * x[3:]
-            transform = step @ transform
+            transform = plane_step(x, centre, radius) @ transform
             if np.linalg.norm(x) < 1e-9:
                 break
     return transform, held
