@@ -42,8 +42,8 @@ from .grouping import heap_probability
 from .describe import describe
 from .grow import grow_groups
 from .outputs import closed_solid, write_outputs
-from .settle import settle
 from .screen import SCREEN_LCS_WEIGHT, _ppf_screen_job, _screen_blocks, normalised_support, screen, select_candidates
+from .settle import settle
 from ..params import Params
 from ..pair.icp import invert
 from ..pair.pipeline import match_pair

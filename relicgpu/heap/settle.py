@@ -51,33 +51,38 @@ def settle(pose: list, group: list[int], samples: list[SurfaceSample], params: P
     anchors = {min(i for i in range(len(group)) if group[i] == g) for g in set(group)}
     movable = [i for i in range(len(pose)) if pose[i] is not None and i not in anchors
                and len(samples[i].surface) >= MIN_PAIRS]
+    placed = [_placed(samples[k], pose[k]) for k in range(len(pose))]  # (points, normals) in the assembly's frame
+    spheres = [_sphere(p) for p in placed]
     for _ in range(params.settle_rounds if movable else 0):
-        spheres = [_sphere(samples[k].surface, pose[k]) for k in range(len(pose))]
         moved = 0.0
         for i in movable:
             others = [k for k in range(len(pose)) if k != i and group[k] == group[i] and pose[k] is not None
                       and _near(spheres[i], spheres[k], reach)]
             if not others:
                 continue
-            target = np.concatenate([apply(pose[k], samples[k].surface) for k in others])
-            normals = np.concatenate([samples[k].normals @ pose[k][:3, :3].T for k in others])
-            before = pose[i]
+            target = np.concatenate([placed[k][0] for k in others])
+            normals = np.concatenate([placed[k][1] for k in others])
+            before = placed[i][0]
             pose[i] = _steps(samples[i].surface, samples[i].normals, target, normals, pose[i], reach,
                              backend.nearest_index(target))
-            spheres[i] = _sphere(samples[i].surface, pose[i])
-            shift = apply(pose[i], samples[i].surface) - apply(before, samples[i].surface)
-            moved = max(moved, float(np.sqrt((shift ** 2).sum(axis=1).mean())))
+            placed[i] = _placed(samples[i], pose[i])
+            spheres[i] = _sphere(placed[i])
+            moved = max(moved, float(np.sqrt(((placed[i][0] - before) ** 2).sum(axis=1).mean())))
         if moved < STILL * scale:
             break
     return pose
 
 
-def _sphere(points: np.ndarray, pose: np.ndarray | None):
-    if pose is None or len(points) == 0:
+def _placed(sample: SurfaceSample, pose: np.ndarray | None):
+    """A fragment's (N, 3) surface points and normals carried by its pose, or None where unplaced."""
+    return None if pose is None else (apply(pose, sample.surface), sample.normals @ pose[:3, :3].T)
+
+
+def _sphere(placed):
+    if placed is None or len(placed[0]) == 0:
         return None
-    moved = apply(pose, points)
-    centre = moved.mean(axis=0)
-    return centre, float(np.sqrt(((moved - centre) ** 2).sum(axis=1).max()))
+    centre = placed[0].mean(axis=0)
+    return centre, float(np.sqrt(((placed[0] - centre) ** 2).sum(axis=1).max()))
 
 
 def _near(a, b, reach: float) -> bool:
