@@ -42,6 +42,8 @@ CASES = [
      "--json {tmp}/search.json",
      "search.json"),
     ("bench_segment.py", "--seeds 1 --only synth", None),
+    ("bench_settle.py", "--families voronoi-noisy --seeds 0 --pieces 3 --faces 600 --json {tmp}/settle.json",
+     "settle.json"),
     ("bench_resolution.py", "--names slab --seeds 0 --faces 1500 --roughness-spacing 0,0.02", None),
     ("bench_verify.py", "collect --out {tmp}/fits.pkl --families synth --seeds 0 --faces 1500", "fits.pkl"),
     ("show_synth.py", "--shape slab --pieces 2 -o {tmp}/synth.png", "synth.png"),
