@@ -120,8 +120,9 @@ def _steps(points: np.ndarray, point_normals: np.ndarray, target: np.ndarray, ta
     held = None
     for _ in range(STEPS):
         moved, idx, use = _pairs(points, point_normals, pose, target, target_normals, reach, index)
-        held = np.count_nonzero(use) if held is None else held
-        if np.count_nonzero(use) < MIN_PAIRS:
+        count = np.count_nonzero(use)
+        held = count if held is None else held
+        if count < MIN_PAIRS:
             break
         p, q, n = moved[use], target[idx[use]], target_normals[idx[use]]
         centre = p.mean(axis=0)
