@@ -105,6 +105,10 @@ class Params:
     plane_iterations: int = 20       # point-to-plane polish after ICP (stops early when converged)
     icp_reject: float = 0.03         # nearest pairs farther than this are not used in the fit
     icp_trim: float = 0.2            # ... nor those farther than 3x this quantile of the distances
+    # ... nor, between two fine meshes (median edge under `facing_edge`), pairs whose normals face
+    # each other less than this cosine (None: no such test): a rescanned break's skin beside it
+    fine_facing: float | None = -0.7
+    facing_edge: float = 0.015
 
     # verification
     contact_distance: float = 0.01   # a point within this of the other fracture surface is in contact

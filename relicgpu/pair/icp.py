@@ -196,7 +196,7 @@ def _trim_cutoff(dist: np.ndarray, trim: float, reject: float, floor: float) -> 
 def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backend, iterations: int,
                 reject: float, floor: float, tolerance: float = 0.0, trim: float = 0.5,
                 index=None, weights: np.ndarray | None = None,
-                target_weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                target_weights: np.ndarray | None = None, facing: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """ICP (Alg. 5, as `icp`) for many starting poses at once: every round is ONE nearest-neighbour
     launch over all hypotheses' points. Stops after `iterations` rounds or when no hypothesis's
     mean distance changes by `tolerance` or more. Returns the poses and each one's share of source
@@ -209,7 +209,10 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
 
     weights : (N,) optional, of the source points; target_weights : (M,) optional, of the target
         points (fracture likelihoods): a pair weighs the product in the cross-covariance, and
-        the share counts source points by their weight."""
+        the share counts source points by their weight.
+    facing : optional (source normals (N, 3), target normals (M, 3), cosine): a pair is used only
+        where the source point's normal, turned by the pose, faces the target point's by more
+        (their cosine under the bound); the share counts every point."""
     poses = np.array(poses, np.float64)
     h, n = len(poses), len(source)
     point_weight = np.ones(n) if weights is None else np.asarray(weights, np.float64)
@@ -224,7 +227,7 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
         dist = np.asarray(dist, np.float64).reshape(h, n)
         idx = np.where(np.isfinite(dist), np.asarray(idx, np.int64).reshape(h, n), 0)
         cutoff = _trim_cutoff(dist, trim, reject, floor)
-        w = _pair_weights(dist < cutoff[:, None], idx, weights, target_weights)
+        w = _pair_weights((dist < cutoff[:, None]) & _faces(facing, poses, idx), idx, weights, target_weights)
         share = (dist < floor) @ point_weight / max(point_weight.sum(), 1e-12)
         wsum = np.maximum(w.sum(axis=1), 1e-12)
         dist = np.where(w > 0, dist, 0.0)
@@ -250,6 +253,16 @@ def batched_icp(source: np.ndarray, target: np.ndarray, poses: np.ndarray, backe
     return poses, share
 
 
+def _faces(facing: tuple | None, poses: np.ndarray, idx: np.ndarray) -> np.ndarray | bool:
+    """(H, N) whether each source point's normal, turned by its (H, 4, 4) pose, faces its nearest
+    target point's (idx (H, N)) by more than `facing`'s cosine; True where `facing` is None."""
+    if facing is None:
+        return True
+    source_normals, target_normals, bound = facing
+    turned = np.matmul(source_normals, np.swapaxes(poses[:, :3, :3], 1, 2))
+    return np.einsum("hij,hij->hi", turned, target_normals[idx]) < bound
+
+
 def plane_step(x: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
     """The (4, 4) rigid step of a linearised point-to-plane solve `x` (6,), in units of `radius`:
     p -> turn (p - centre) + centre + radius * x[3:], the turn of |x[:3]| radians about x[:3]."""
@@ -262,7 +275,7 @@ def plane_step(x: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
 
 def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, init: np.ndarray,
                           backend, iterations: int, cutoff: float, index=None, weights: np.ndarray | None = None,
-                          target_weights: np.ndarray | None = None) -> np.ndarray:
+                          target_weights: np.ndarray | None = None, facing: tuple | None = None) -> np.ndarray:
     """Polish converged poses by minimising distances to the target's tangent planes.
 
     Two samplings of one surface never share points, so point-to-point ICP stops at the
@@ -274,7 +287,7 @@ def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals
     The step turns about the moved source's centroid and is solved in units of the source's
     RMS radius, so that the result does not depend on the units or on how far from the
     origin the points lie (a turn about a far origin is mostly translation). weights (N,) and
-    target_weights (M,): optional, as in `batched_icp`.
+    target_weights (M,) and facing: optional, as in `batched_icp`.
     """
     poses = np.array(init, np.float64)
     single = poses.ndim == 2
@@ -291,7 +304,7 @@ def refine_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals
         idx, dist = index.query(moved.reshape(-1, 3), within=cutoff)  # (as in batched_icp)
         dist = np.asarray(dist, np.float64).reshape(len(live), n)
         idx = np.where(np.isfinite(dist), np.asarray(idx, np.int64).reshape(len(live), n), 0)
-        keep = _pair_weights(dist < cutoff, idx, weights, target_weights)
+        keep = _pair_weights((dist < cutoff) & _faces(facing, poses[live], idx), idx, weights, target_weights)
         enough = (keep > 0).sum(axis=1) >= 6
         q, nrm = target[idx], target_normals[idx]
         centre = moved.mean(axis=1, keepdims=True)

@@ -1,7 +1,8 @@
 """Verification of a mesh pair's fit: the checks of `verify` with `Params`' bounds; the residual
 band where a rescanned break's outline or skin speaks for it (`outline_fit`); a thin wall's fit
 that faces too little, taken where its rims meet the partner's creases (`rims_fit`); `band_fit`
-asks the one that a refused fit's reason calls for. `skin_pick` chooses among fits that pass alike."""
+asks the one that a refused fit's reason calls for. `skin_pick` chooses among fits that pass alike,
+`skin_over_band` between the one chosen and those passing in the band on their skin."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -28,6 +29,9 @@ WALL_SKIN_NEAR = 30
 WALL_SKIN_WHOLE = 0.9
 # how the reasons of the fits `band_fit` accepts begin (`pipeline.match_pair` asks the second reading of them)
 ON_OUTLINE, ON_SKIN, ON_RIMS = BANDED = ("accepted on its outline", "accepted on its skin", "accepted on its rims")
+# A fit that passes gives way to one passing in the band whose skin beside the seam continues the
+# partner's at least this many times as much (`skin_over_band`).
+SKIN_OVER = 2.0
 
 
 def verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, max_rmse: float):
@@ -124,3 +128,25 @@ def skin_pick(a, b, params: Params, scale: float, passed: list) -> tuple:
     transform, ver, *rest = passed[k]
     return (transform, replace(ver, reason=f"{ver.reason} (of {len(passed)} fits that pass, the skin beside its "
                                            f"seam continues most: {skins[k]:.2f}, the first's {skins[0]:.2f})"), *rest)
+
+
+def skin_over_band(a, b, params: Params, scale: float, chosen: tuple, banded: list) -> tuple | None:
+    """Of the fits passing in the band (`band_fit`; (transform, verification, ...) each), the one
+    whose skin beside the seam continues the partner's most, where that is at least
+    `Params.min_skin` and SKIN_OVER times the chosen passing fit's (`chosen`); None otherwise. On
+    a noisy rescan every fit of a flat break lies near the residual bound, on either side of it:
+    a break laid half a turn off on the partner's passed where the right fit, a little rougher,
+    fell in the band; only the right one carries the skin on across the seam (docs/benchmarks.md)."""
+    if params.min_skin is None or not banded:
+        return None
+    contact = params.contact_distance * scale
+    skins = [seam.skin_continuation(a, b, fit[0], contact, scale) for fit in banded]
+    k = int(np.argmax(skins))
+    if skins[k] < params.min_skin:
+        return None
+    own = seam.skin_continuation(a, b, chosen[0], contact, scale)
+    if skins[k] < SKIN_OVER * own:
+        return None
+    transform, ver, *rest = banded[k]
+    return (transform, replace(ver, reason=f"{ver.reason}; its skin continues {skins[k]:.2f}, that of a fit "
+                                           f"that passes {own:.2f}"), *rest)

@@ -27,7 +27,7 @@ from .planar import RIM_HIT, apart, is_thin, polished_fits
 from .ppf import vote_poses
 from .result import PairMatch
 from . import seam
-from .meshfit import BANDED, band_fit, skin_pick, verify_mesh
+from .meshfit import BANDED, band_fit, skin_over_band, skin_pick, verify_mesh
 from .skinhold import held_by_skin, skin_continues
 from .verify import index_cache, rim_agreement
 
@@ -355,7 +355,7 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
                                 params.max_rmse * scale, params.min_overlap, params.penetration_depth * scale, index_of)
         else:
             ver = verify_mesh(pa.sample, pb.sample, transform, be, params, scale, index_of, params.max_rmse)
-            if not ver.accepted and not passed and (picking or not banded):
+            if not ver.accepted and (picking or not (passed or banded)):
                 outline = band_fit(pa.sample, pb.sample, transform, be, params, scale, index_of, ver)
                 if outline is not None:
                     banded.append((transform, outline, ca, cb, pairs))
@@ -366,8 +366,10 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
             passed.append((transform, ver, ca, cb, pairs))
             if not picking:
                 break
+    over = None
     if passed:
         best = (None, *skin_pick(pa.sample, pb.sample, params, scale, passed))
+        over = skin_over_band(pa.sample, pb.sample, params, scale, best[1:], banded) if picking else None
     timings["icp+verify"] += time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t_start
 
@@ -377,9 +379,10 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
                          reason, timings)
     _, transform, ver, ca, cb, pairs = best
     weight = 1.0
-    if not ver.accepted and banded:
-        # no fit passed every check; one passed all but the residual (or facing) in the band
-        transform, ver, ca, cb, pairs = skin_pick(pa.sample, pb.sample, params, scale, banded)
+    if over is not None or (not ver.accepted and banded):
+        # no fit passed every check, or one that did lays its skin across the partner's; one passed
+        # all but the residual (or facing) in the band
+        transform, ver, ca, cb, pairs = over or skin_pick(pa.sample, pb.sample, params, scale, banded)
         weight = OUTLINE_SCORE
     score = weight * ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
@@ -389,6 +392,26 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
 def _same_fit(p: np.ndarray, q: np.ndarray, scale: float) -> bool:
     """Whether two (4, 4) fits are one: within 0.06 degrees and a thousandth of the scale."""
     return bool(np.abs(p[:3, :3] - q[:3, :3]).max() < 1e-3 and np.abs(p[:3, 3] - q[:3, 3]).max() < 1e-3 * scale)
+
+
+def _fine_facing(pa: Prepared, pb: Prepared, params: Params, scale: float) -> tuple | None:
+    """The fine stage's normal test (`icp.batched_icp`'s `facing`) where both are meshes whose median
+    edge is under `Params.facing_edge` of the scale, else None. On a fine mesh the fracture sample's
+    vertex normals are the break's, and two sides of one break face each other; a rescanned
+    break's skin beside it, read as break, lies near the partner's skin facing the same way and
+    held the fit of a thin wall's band a few degrees off. On a coarse mesh most fracture vertices
+    lie on the rim, their normals the mean of skin and break, and the test leaves too few pairs."""
+    if params.fine_facing is None or not all(_fine_mesh(p, params.facing_edge * scale) for p in (pa, pb)):
+        return None
+    return pb.sample.fracture_normals, pa.sample.fracture_normals, params.fine_facing
+
+
+def _fine_mesh(p: Prepared, edge: float) -> bool:
+    faces = getattr(p.fragment, "faces", None)
+    if faces is None or len(faces) == 0:
+        return False
+    v = p.fragment.vertices
+    return float(np.median(np.linalg.norm(v[faces[:, 0]] - v[faces[:, 1]], axis=1))) < edge
 
 
 def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict):
@@ -463,13 +486,15 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     fits = []
     if candidates:
         # ICP of all hypotheses together (one nearest-neighbour launch per round), then each polished
+        facing = _fine_facing(pa, pb, params, scale)
         fine, share = batched_icp(pb.sample.fracture, pa.sample.fracture, np.array([c[1] for c in candidates]), be,
                                   params.icp_iterations, params.icp_reject * scale, params.contact_distance * scale,
-                                  params.icp_tolerance * scale, params.icp_trim, index_of(pa.sample.fracture), w_b, w_a)
+                                  params.icp_tolerance * scale, params.icp_trim, index_of(pa.sample.fracture), w_b, w_a,
+                                  facing)
         best_first = np.argsort(-share, kind="stable")[: params.verify_at_most]
         polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
                                          fine[best_first], be, params.plane_iterations, params.contact_distance * scale,
-                                         index_of(pa.sample.fracture), pb.sample.weights(), pa.sample.weights())
+                                         index_of(pa.sample.fracture), pb.sample.weights(), pa.sample.weights(), facing)
         fits = [(polished[i], *candidates[k][2:]) for i, k in enumerate(best_first)]
     if heads is None and params.facet_starts > 0:
         # facets whose outlines agree go first, flat ones before near-flat ones: the ranking above
