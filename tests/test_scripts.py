@@ -42,6 +42,7 @@ CASES = [
      "--json {tmp}/search.json",
      "search.json"),
     ("bench_segment.py", "--seeds 1 --only synth", None),
+    ("bench_fine.py", "--families vessel-noisy --seeds 2 --pieces 2 --faces 2000 --json {tmp}/fine.json", "fine.json"),
     ("bench_settle.py", "--families voronoi-noisy --seeds 0 --pieces 3 --faces 600 --json {tmp}/settle.json",
      "settle.json"),
     ("bench_resolution.py", "--names slab --seeds 0 --faces 1500 --roughness-spacing 0,0.02", None),

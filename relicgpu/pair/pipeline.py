@@ -394,6 +394,24 @@ def _same_fit(p: np.ndarray, q: np.ndarray, scale: float) -> bool:
     return bool(np.abs(p[:3, :3] - q[:3, :3]).max() < 1e-3 and np.abs(p[:3, 3] - q[:3, 3]).max() < 1e-3 * scale)
 
 
+def fine_stage(pa: Prepared, pb: Prepared, starts: np.ndarray, params: Params, be, scale: float, index,
+               at_most: int) -> tuple[np.ndarray, np.ndarray]:
+    """The fine stage of a pair's search: ICP of all (H, 4, 4) starts carrying b onto a together
+    (one nearest-neighbour launch a round; `index` is a's fracture sample's), then the point-to-plane
+    polish of the `at_most` touching most. Returns their (K, 4, 4) poses and the (K,) indices of
+    the starts they came from, best-touching first."""
+    facing = _fine_facing(pa, pb, params, scale)
+    contact = params.contact_distance * scale
+    fine, share = batched_icp(pb.sample.fracture, pa.sample.fracture, starts, be, params.icp_iterations,
+                              params.icp_reject * scale, contact, params.icp_tolerance * scale, params.icp_trim, index,
+                              pb.sample.weights(), pa.sample.weights(), facing)
+    best_first = np.argsort(-share, kind="stable")[:at_most]
+    polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
+                                     fine[best_first], be, params.plane_iterations, contact, index,
+                                     pb.sample.weights(), pa.sample.weights(), facing)
+    return polished, best_first
+
+
 def _fine_facing(pa: Prepared, pb: Prepared, params: Params, scale: float) -> tuple | None:
     """The fine stage's normal test (`icp.batched_icp`'s `facing`) where both are meshes whose median
     edge is under `Params.facing_edge` of the scale, else None. On a fine mesh the fracture sample's
@@ -485,16 +503,8 @@ def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     t1 = time.perf_counter()
     fits = []
     if candidates:
-        # ICP of all hypotheses together (one nearest-neighbour launch per round), then each polished
-        facing = _fine_facing(pa, pb, params, scale)
-        fine, share = batched_icp(pb.sample.fracture, pa.sample.fracture, np.array([c[1] for c in candidates]), be,
-                                  params.icp_iterations, params.icp_reject * scale, params.contact_distance * scale,
-                                  params.icp_tolerance * scale, params.icp_trim, index_of(pa.sample.fracture), w_b, w_a,
-                                  facing)
-        best_first = np.argsort(-share, kind="stable")[: params.verify_at_most]
-        polished = refine_point_to_plane(pb.sample.fracture, pa.sample.fracture, pa.sample.fracture_normals,
-                                         fine[best_first], be, params.plane_iterations, params.contact_distance * scale,
-                                         index_of(pa.sample.fracture), pb.sample.weights(), pa.sample.weights(), facing)
+        polished, best_first = fine_stage(pa, pb, np.array([c[1] for c in candidates]), params, be, scale,
+                                          index_of(pa.sample.fracture), params.verify_at_most)
         fits = [(polished[i], *candidates[k][2:]) for i, k in enumerate(best_first)]
     if heads is None and params.facet_starts > 0:
         # facets whose outlines agree go first, flat ones before near-flat ones: the ranking above
