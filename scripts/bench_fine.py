@@ -1,6 +1,6 @@
 """Where the pair's fine stage takes a start near the truth: each touching pair of an object,
 started a few degrees and a share of the size off its true pose, refined as `match_pair` refines
-its starts (`pipeline.fine_stage`: ICP, then the point-to-plane polish), and counted right where it
+its starts (`fine.fine_stage`: ICP, then the point-to-plane polish), and counted right where it
 ends under 2 degrees and 1% of the size (vertex RMS) from the truth.
 
 A start the search brings within a few degrees should end right; on rescanned breaks the fine
@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from relicgpu.backends import resolve  # noqa: E402
 from relicgpu.heap.assembly import common_scale  # noqa: E402
 from relicgpu.pair.icp import apply, axis_rotation, invert, rotation_angle_deg  # noqa: E402
-from relicgpu.pair.pipeline import fine_stage  # noqa: E402
+from relicgpu.pair.fine import fine_stage  # noqa: E402
 from relicgpu.pair.prepare import prepare  # noqa: E402
 from relicgpu.params import Params  # noqa: E402
 from relicgpu.synth import corpus  # noqa: E402

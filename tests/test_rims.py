@@ -155,14 +155,18 @@ def test_a_rescanned_pair_is_accepted_on_its_outline_and_only_there(noisy_pair):
 def test_a_half_turn_whose_outline_agrees_but_whose_skin_does_not_continue_is_refused():
     """A flat rescanned break turned half a turn keeps its nearly symmetric outline but lays its
     sides across the partner's: the skin beside the seam does not continue (corpus voronoi-noisy
-    seed 1, outlines agree 0.67, skin 0.02). Accepted on its outline where the skin is not asked
-    (`Params.outline_skin` None), refused where it is."""
+    seed 1, outlines agree 0.67, skin 0.02). With the fine stage on all pairs (`Params.fine_facing`
+    None): accepted on its outline where the skin is not asked (`Params.outline_skin` None), refused
+    where it is. On the facing pairs the fine stage finds the right fit, accepted on its skin."""
     (a, b), truth = corpus_pair("voronoi-noisy", 1)
-    unasked = pl.match_pair(a, b, Params(outline_skin=None), "numpy")
+    unasked = pl.match_pair(a, b, Params(outline_skin=None, fine_facing=None), "numpy")
     assert unasked.accepted and unasked.reason.startswith("accepted on its outline"), unasked.reason
     assert rotation_angle_deg(unasked.transform[:3, :3] @ truth[:3, :3].T) > 90.0
-    m = pl.match_pair(a, b, Params(), "numpy")
+    m = pl.match_pair(a, b, Params(fine_facing=None), "numpy")
     assert not m.accepted, m.reason
+    now = pl.match_pair(a, b, Params(), "numpy")
+    assert now.accepted and now.reason.startswith("accepted on its skin"), now.reason
+    assert rotation_angle_deg(now.transform[:3, :3] @ truth[:3, :3].T) < 2.0
 
 
 def test_a_thin_walls_fit_that_faces_too_little_is_accepted_on_its_rims():
@@ -268,6 +272,7 @@ def test_the_fine_stage_holds_a_rescanned_thin_wall_at_its_fit_on_the_facing_pai
     vessel-noisy seed 2 at 12,000 faces a piece: a start 2 degrees off ends 1.0% of the size off).
     Between two fine meshes only pairs whose normals face each other are used (`Params.fine_facing`):
     0.4%. On coarse meshes (`Params.facing_edge`) the test is not made."""
+    from relicgpu.pair.fine import facing_test, fine_stage
     from relicgpu.pair.icp import apply
     from relicgpu.synth import corpus
 
@@ -280,13 +285,13 @@ def test_the_fine_stage_holds_a_rescanned_thin_wall_at_its_fit_on_the_facing_pai
     index = backend.nearest_index(pa.sample.fracture)
 
     def off(p):
-        pose = pl.fine_stage(pa, pb, start[None], p, backend, scale, index, 1)[0][0]
+        pose = fine_stage(pa, pb, start[None], p, backend, scale, index, 1)[0][0]
         v = r.fragments[1].vertices
         return float(np.sqrt(((apply(pose, v) - apply(truth, v)) ** 2).sum(1).mean())) / size
 
-    facing = pl._fine_facing(pa, pb, params, scale)
+    facing = facing_test(pa, pb, params, scale)
     assert facing is not None and facing[2] == params.fine_facing
     assert off(params) < 0.006
     assert off(params.with_(fine_facing=None)) > 0.008
     coarse = corpus.generate("vessel-coarse", 2, 2, 400)
-    assert pl._fine_facing(*(prepare(x, params, "numpy", scale=scale) for x in coarse.fragments), params, scale) is None
+    assert facing_test(*(prepare(x, params, "numpy", scale=scale) for x in coarse.fragments), params, scale) is None
