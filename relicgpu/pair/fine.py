@@ -45,8 +45,6 @@ def facing_test(pa: Prepared, pb: Prepared, params: Params, scale: float) -> tup
 
 
 def _fine_mesh(p: Prepared, edge: float) -> bool:
-    faces = getattr(p.fragment, "faces", None)
-    if faces is None or len(faces) == 0:
-        return False
-    v = p.fragment.vertices
-    return float(np.median(np.linalg.norm(v[faces[:, 0]] - v[faces[:, 1]], axis=1))) < edge
+    """Whether the fragment is a mesh (a cloud's faces are empty) whose median edge is under `edge`."""
+    v, faces = p.fragment.vertices, p.fragment.faces
+    return len(faces) > 0 and float(np.median(np.linalg.norm(v[faces[:, 0]] - v[faces[:, 1]], axis=1))) < edge
