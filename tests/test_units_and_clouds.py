@@ -566,3 +566,39 @@ def test_a_flat_cut_laid_face_to_face_faces_as_any_cloud_fit_does():
     result = match_pair(*frags, backend="numpy")
     assert "flat cut" in result.reason, result.reason
     _assert_right(result, frags[1], truth)
+
+
+def test_a_board_broken_across_is_matched_from_starts_framed_by_its_boards(backend, monkeypatch):
+    """A bookshelf of boards 0.02 thick (about a point spacing) cut rough: the point-pair votes'
+    fits lay the boards' narrow faces on each other, and no fit near the truth was among them
+    (refused). One break point of each piece framed by its break normal and its board's normal
+    fixes the pose up to the board's side (`sheets.sheet_starts`); the fit found so is right."""
+    from relicgpu.pair import pipeline
+
+    (a, b), truth, _ = _thin_cloud_pair("shelf02-rough", 0, 2)
+    result = match_pair(a, b, backend=backend)
+    assert "framed by their boards" in result.reason, result.reason
+    _assert_right(result, b, truth)
+    if backend == "numpy":
+        monkeypatch.setattr(pipeline, "sheet_fit", lambda *args: None)
+        assert not match_pair(a, b, backend=backend).accepted
+
+
+def test_a_break_point_is_framed_by_its_break_normal_and_its_boards():
+    """`sheets.board_frames` on a board 0.02 thick (two faces) broken across at x = 0: each break
+    point's frame is (its break normal, the board's normal up to its side, their cross product)."""
+    from relicgpu.pair.sheets import board_frames
+    from relicgpu.pair.verify import SurfaceSample
+
+    rng = np.random.default_rng(1)
+    faces = np.column_stack([rng.uniform(0, 0.5, 800), rng.uniform(0, 0.3, 800), np.repeat([0.0, 0.02], 400)])
+    face_normals = np.repeat([[0, 0, -1.0], [0, 0, 1.0]], 400, axis=0)
+    end = np.column_stack([np.zeros(60), rng.uniform(0, 0.3, 60), rng.uniform(0, 0.02, 60)])
+    end_normals = np.tile([-1.0, 0, 0], (60, 1))
+    sample = SurfaceSample(end, np.zeros(60, np.int64), end_normals, np.concatenate([faces, end]),
+                           np.concatenate([face_normals, end_normals]))
+    frames, which = board_frames(sample)
+    assert len(which) == 60
+    np.testing.assert_allclose(frames[:, :, 0], end_normals)
+    np.testing.assert_allclose(np.abs(frames[:, 2, 1]), 1.0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(frames), 1.0, atol=1e-9)

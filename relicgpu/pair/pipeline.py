@@ -29,6 +29,7 @@ from .result import PairMatch
 from . import seam
 from .fine import fine_stage
 from .meshfit import BANDED, band_fit, skin_over_band, skin_pick, verify_mesh
+from .sheets import sheet_fit
 from .skinhold import held_by_skin, skin_continues
 from .verify import index_cache, rim_agreement
 
@@ -177,7 +178,8 @@ def _match_majority(pa: Prepared, pb: Prepared, params: Params, be, scale: float
 def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
                 result: PairMatch) -> PairMatch:
     """Two clouds whose picks are thin walls' bands (`cloudmatch.thin_pick`) matched on them as a thin
-    cut is (`cloudmatch.thin_wall_fit`): result kept where no fit passes."""
+    cut is (`cloudmatch.thin_wall_fit`), then from starts framed by their boards (`sheets.sheet_fit`):
+    result kept where no fit passes."""
     spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
     skins = [cloud_skin(p.fragment, p.sample) for p in (pa, pb)]
     if not all(thin_pick(skin, p.sample, spacing) for (skin, _), p in zip(skins, (pa, pb))):
@@ -185,6 +187,8 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
     t0 = time.perf_counter()
     fits, index_of = _candidate_fits(pa, pb, params, be, None, scale, dict(timings))
     found = thin_wall_fit(skins, [pa.sample, pb.sample], [t for t, *_ in fits], spacing, params, scale, be, index_of)
+    if found is None:
+        found = sheet_fit(skins, [pa.sample, pb.sample], spacing, params, scale, be, index_of)
     if found is None:
         return result
     (transform, ver, reason), timings = found, {**timings, "seam": time.perf_counter() - t0}

@@ -1,0 +1,147 @@
+"""Boards broken across: starts from one pair of break points framed by their boards (issue 15).
+
+A board about one point spacing thick (a bookshelf's 0.02 boards at 2,500 points a piece)
+breaks as a strip a point or two wide along each broken board. Point-pair votes over such strips
+are led by the boards' own narrow faces (strips too), and the fits they start are laid half a
+turn off or face on face; the right pose is among none of them (bookshelves cut rough, seeds
+0-11: 1 of 12 right). But one break point of each piece, with its break normal and the normal of
+its board's skin beside it, fixes a pose up to the board's side: the frames
+(break normal, board normal, their cross product) of a's point and of b's, b's break normal
+turned to face a's. `sheet_starts` makes those poses for every pair of framed break points,
+keeps the ones under which most of b's break lands on a's facing it and then most of b's skin
+runs on along a's (the same normal, a board continued), and `sheet_fit` takes the one whose
+skin beside the seam continues the partner's most among those that verify as a thin cut does
+(`cloudmatch.thin_wall_fit`'s checks), each as it is, polished point to plane on the break, and
+polished on the skin across the seam (`seam.seam_polish`: on some pairs it slides the true pose
+off its strips; on others it is what brings a start there).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .cloudmatch import (PICK_SKIN_NEAR, THIN_PICK_SKIN, THIN_WIDE_GATE, one_face_seam, verify_clouds)
+from .icp import distinct_poses, refine_point_to_plane
+from .planar import RIM_HIT
+from . import seam
+from .verify import SurfaceSample
+
+# A break point is framed by the mean normal of its SKIN_NEIGHBOURS nearest skin points (signs
+# made to agree), kept where that mean, less its part along the break normal, is at least
+# MIN_BOARD long (a board's face, not a corner's mix).
+SKIN_NEIGHBOURS = 8
+MIN_BOARD = 0.5
+# Poses are scored on up to SCORE_BREAK of b's break points (landing within a contact of a's,
+# normals facing under FACING), the best SCORE_KEEP again on up to SCORE_SKIN of b's skin points
+# (within a contact of a's, normals within ALONG: a board run on), and the STARTS best by the sum,
+# distinct, are verified. Bookshelves of 0.02 boards cut rough and smooth, seeds 0-5
+# (`.dev/s44/sheet.py`): a start within 8 degrees of the truth among the 16 in 11 of 12 pairs.
+SCORE_BREAK = 60
+SCORE_SKIN = 400
+SCORE_KEEP = 300
+STARTS = 16
+FACING = -0.5
+ALONG = 0.7
+CONTACT_SPACINGS = 1.5
+POLISH_ROUNDS = 20
+
+
+def board_frames(sample: SurfaceSample) -> tuple[np.ndarray, np.ndarray]:
+    """Each break point's frame: columns (break normal, board normal, their cross product).
+
+    Returns
+    -------
+    frames : (F, 3, 3) float, rotations whose columns are the frame's axes
+    which : (F,) int, the break points (of `sample.fracture`) framed; a point with no board beside
+        it (no skin near, or skin normals that do not agree) has none
+    """
+    from scipy.spatial import cKDTree
+
+    n = sample.fracture_normals
+    on_break = cKDTree(sample.fracture).query(sample.surface)[0] <= 1e-9 * max(np.ptp(sample.surface), 1e-300)
+    skin, skin_normals = sample.surface[~on_break], sample.normals[~on_break]
+    if len(skin) == 0 or len(n) == 0:
+        return np.zeros((0, 3, 3)), np.zeros(0, np.int64)
+    _, j = cKDTree(skin).query(sample.fracture, k=min(SKIN_NEIGHBOURS, len(skin)))
+    near = skin_normals[j.reshape(len(n), -1)]
+    near = near * np.sign(np.einsum("pkd,pd->pk", near, near[:, 0]) + 1e-12)[:, :, None]
+    board = near.mean(axis=1)
+    board -= np.einsum("pd,pd->p", board, n)[:, None] * n
+    length = np.linalg.norm(board, axis=1)
+    which = np.flatnonzero(length >= MIN_BOARD)
+    board = board[which] / length[which, None]
+    frames = np.stack([n[which], board, np.cross(n[which], board)], axis=2)
+    return frames, which
+
+
+def sheet_starts(a: SurfaceSample, b: SurfaceSample, contact: float, count: int = STARTS) -> np.ndarray:
+    """(K, 4, 4) poses carrying b onto a, best first: one for each pair of framed break points
+    and each side of a's board (b's frame turned onto a's with its break normal reversed), scored
+    as the module says, at most `count` distinct ones."""
+    from scipy.spatial import cKDTree
+
+    fa, ia = board_frames(a)
+    fb, ib = board_frames(b)
+    if len(ia) == 0 or len(ib) == 0:
+        return np.zeros((0, 4, 4))
+    flip = np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])  # break normal reversed, either board side
+    targets = np.concatenate([fa @ f for f in flip])  # (2Fa, 3, 3)
+    anchors = np.concatenate([a.fracture[ia]] * 2)
+    rot = np.einsum("aij,bkj->abik", targets, fb).reshape(-1, 3, 3)  # target frame @ b's frame transposed
+    shift = (anchors[:, None, :] - np.einsum("abij,bj->abi", rot.reshape(len(targets), len(ib), 3, 3),
+                                             b.fracture[ib])).reshape(-1, 3)
+
+    def landed(points, normals, tree, target_normals, rows, facing):
+        out = np.zeros(len(rows))
+        for s in range(0, len(rows), 4000):
+            r = rows[s:s + 4000]
+            moved = np.einsum("pij,qj->pqi", rot[r], points) + shift[r, None]
+            d, j = tree.query(moved.reshape(-1, 3), distance_upper_bound=contact)
+            j = np.minimum(j, len(target_normals) - 1)
+            cos = np.einsum("ij,ij->i", np.einsum("pij,qj->pqi", rot[r], normals).reshape(-1, 3), target_normals[j])
+            hit = (d < contact) & ((cos < FACING) if facing else (cos > ALONG))
+            out[s:s + 4000] = hit.reshape(len(r), -1).sum(axis=1)
+        return out
+
+    step = max(1, len(b.fracture) // SCORE_BREAK)
+    score = landed(b.fracture[::step], b.fracture_normals[::step], cKDTree(a.fracture), a.fracture_normals,
+                   np.arange(len(rot)), True)
+    top = np.argsort(-score, kind="stable")[:SCORE_KEEP]
+    step = max(1, len(b.surface) // SCORE_SKIN)
+    score = score[top] + landed(b.surface[::step], b.normals[::step], cKDTree(a.surface), a.normals, top, False)
+    poses = np.tile(np.eye(4), (len(top), 1, 1))
+    poses[:, :3, :3], poses[:, :3, 3] = rot[top], shift[top]
+    order = np.argsort(-score, kind="stable")
+    return poses[distinct_poses(poses, order, count, 2.0 * contact)]
+
+
+def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, index_of):
+    """The fit of two boards' breaks from `sheet_starts` whose skin beside the seam continues the
+    partner's most, among those (each start as it is, polished point to plane on the break, and
+    polished on the skin across the seam) that verify as `cloudmatch.thin_wall_fit`'s do:
+    (transform, Verification, reason) or None. Arguments as `thin_wall_fit`'s."""
+    a, b = samples
+    contact = params.contact_distance * scale
+    reach = max(contact, RIM_HIT * spacing)
+    starts = sheet_starts(a, b, CONTACT_SPACINGS * spacing)
+    if len(starts) == 0:
+        return None
+    pointwise = refine_point_to_plane(b.fracture, a.fracture, a.fracture_normals, starts, backend, POLISH_ROUNDS,
+                                      2.0 * spacing, index_of(a.fracture), facing=(b.fracture_normals,
+                                                                                   a.fracture_normals, FACING))
+    polished = [seam.seam_polish(a.fracture, a.fracture_normals, b.fracture, *skins, s, contact, scale,
+                                 index_of(a.fracture), THIN_WIDE_GATE)[0] for s in starts]
+    best = None
+    for transform in [*starts, *pointwise, *polished]:
+        ver = verify_clouds(a, b, transform, backend, reach, params.max_rmse * scale, params.min_overlap,
+                            params.penetration_depth * scale, index_of, min_facing=0.0)
+        if not ver.accepted or one_face_seam(a, b, transform, reach, index_of):
+            continue
+        continues, near = seam.skin_points(a, b, transform, contact, scale)
+        if near >= PICK_SKIN_NEAR and continues >= THIN_PICK_SKIN * near and (
+                best is None or continues * best[2] > best[1] * near):
+            best = (transform, continues, near, ver)
+    if best is None:
+        return None
+    transform, continues, near, ver = best
+    return transform, ver, (f"accepted (boards' breaks framed by their boards: {continues} of {near} skin points "
+                            "near the seam continue the partner's)")
