@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..cloud.points import even_subsample
 from .cloudmatch import (PICK_SKIN_NEAR, THIN_PICK_SKIN, THIN_WIDE_GATE, one_face_seam, verify_clouds)
 from .icp import distinct_poses, refine_point_to_plane
 from .planar import RIM_HIT
@@ -35,6 +36,10 @@ MIN_BOARD = 0.5
 # (within a contact of a's, normals within ALONG: a board run on), and the STARTS best by the sum,
 # distinct, are verified. Bookshelves of 0.02 boards cut rough and smooth, seeds 0-5
 # (`.dev/s44/sheet.py`): a start within 8 degrees of the truth among the 16 in 11 of 12 pairs.
+# At most ANCHORS framed points a piece are paired (spread evenly): bookshelves at 2,500 points
+# pick 110-230, a dense cloud's pick up to `Params.icp_points` would make millions
+# of poses.
+ANCHORS = 400
 SCORE_BREAK = 60
 SCORE_SKIN = 400
 SCORE_KEEP = 300
@@ -73,14 +78,19 @@ def board_frames(sample: SurfaceSample) -> tuple[np.ndarray, np.ndarray]:
     return frames, which
 
 
+def _spread(sample: SurfaceSample, frames: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    keep = even_subsample(sample.fracture[which], ANCHORS) if len(which) > ANCHORS else np.arange(len(which))
+    return frames[keep], which[keep]
+
+
 def sheet_starts(a: SurfaceSample, b: SurfaceSample, contact: float, count: int = STARTS) -> np.ndarray:
     """(K, 4, 4) poses carrying b onto a, best first: one for each pair of framed break points
     and each side of a's board (b's frame turned onto a's with its break normal reversed), scored
     as the module says, at most `count` distinct ones."""
     from scipy.spatial import cKDTree
 
-    fa, ia = board_frames(a)
-    fb, ib = board_frames(b)
+    fa, ia = _spread(a, *board_frames(a))
+    fb, ib = _spread(b, *board_frames(b))
     if len(ia) == 0 or len(ib) == 0:
         return np.zeros((0, 4, 4))
     flip = np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])  # break normal reversed, either board side
