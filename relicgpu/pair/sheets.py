@@ -34,11 +34,10 @@ MIN_BOARD = 0.5
 # Poses are scored on up to SCORE_BREAK of b's break points (landing within a contact of a's,
 # normals facing under FACING), the best SCORE_KEEP again on up to SCORE_SKIN of b's skin points
 # (within a contact of a's, normals within ALONG: a board run on), and the STARTS best by the sum,
-# distinct, are verified. Bookshelves of 0.02 boards cut rough and smooth, seeds 0-5
-# (`.dev/s44/sheet.py`): a start within 8 degrees of the truth among the 16 in 11 of 12 pairs.
+# distinct, are verified. Bookshelves of 0.02 boards cut rough (seeds 0-5) and smooth (seeds 0, 2;
+# `.dev/s44/sheet2.py`): a start within 8 degrees of the truth among the 16 in 7 of 8 pairs.
 # At most ANCHORS framed points a piece are paired (spread evenly): bookshelves at 2,500 points
-# pick 110-230, a dense cloud's pick up to `Params.icp_points` would make millions
-# of poses.
+# pick 110-230, a dense cloud's pick up to `Params.icp_points` would make millions of poses.
 ANCHORS = 400
 SCORE_BREAK = 60
 SCORE_SKIN = 400
