@@ -437,15 +437,28 @@ def thin_wall_fit(skins, samples, fits, spacing: float, params: Params, scale: f
     for transform, wide in itertools.product(fits, (THIN_WIDE_GATE, 0.0)):
         polished, held = seam.seam_polish(a.fracture, a.fracture_normals, b.fracture, *skins, transform, contact,
                                           scale, index_of(a.fracture), wide)
-        ver = verify_clouds(a, b, polished, backend, max(contact, RIM_HIT * spacing), params.max_rmse * scale,
-                            params.min_overlap, params.penetration_depth * scale, index_of, min_facing=0.0)
-        if not ver.accepted or one_face_seam(a, b, polished, max(contact, RIM_HIT * spacing), index_of):
-            continue
-        continues, near = seam.skin_points(a, b, polished, contact, scale)
-        if near >= PICK_SKIN_NEAR and continues >= THIN_PICK_SKIN * near:
+        passed = thin_cut_check(a, b, polished, spacing, params, scale, backend, index_of)
+        if passed is not None:
+            ver, continues, near = passed
             return polished, ver, (f"accepted (thin walls' bands: {continues} of {near} skin points near the seam "
                                    f"continue the partner's once the skin across it held the fit, {held} points)")
     return None
+
+
+def thin_cut_check(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, spacing: float, params: Params,
+                   scale: float, backend, index_of) -> tuple[Verification, int, int] | None:
+    """A fit of two thin walls' bands (b moved by the (4, 4) `transform`) checked as a thin cut: verified
+    without the facing check, contact within RIM_HIT spacings (absolute `spacing`), its picks in contact
+    not on one flat face on both sides (`one_face_seam`), and at least THIN_PICK_SKIN of the free skin
+    points near the partner's continuing it: (Verification, continuing, near) or None."""
+    contact = params.contact_distance * scale
+    reach = max(contact, RIM_HIT * spacing)
+    ver = verify_clouds(a, b, transform, backend, reach, params.max_rmse * scale, params.min_overlap,
+                        params.penetration_depth * scale, index_of, min_facing=0.0)
+    if not ver.accepted or one_face_seam(a, b, transform, reach, index_of):
+        return None
+    continues, near = seam.skin_points(a, b, transform, contact, scale)
+    return (ver, continues, near) if near >= PICK_SKIN_NEAR and continues >= THIN_PICK_SKIN * near else None
 
 
 def one_face_seam(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, contact: float, index_of) -> bool:

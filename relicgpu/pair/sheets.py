@@ -20,9 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..cloud.points import even_subsample
-from .cloudmatch import (PICK_SKIN_NEAR, THIN_PICK_SKIN, THIN_WIDE_GATE, one_face_seam, verify_clouds)
+from .cloudmatch import THIN_WIDE_GATE, thin_cut_check
 from .icp import distinct_poses, refine_point_to_plane
-from .planar import RIM_HIT
 from . import seam
 from .verify import SurfaceSample
 
@@ -130,7 +129,6 @@ def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, ind
     (transform, Verification, reason) or None. Arguments as `thin_wall_fit`'s."""
     a, b = samples
     contact = params.contact_distance * scale
-    reach = max(contact, RIM_HIT * spacing)
     starts = sheet_starts(a, b, CONTACT_SPACINGS * spacing)
     if len(starts) == 0:
         return None
@@ -141,13 +139,11 @@ def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, ind
                                  index_of(a.fracture), THIN_WIDE_GATE)[0] for s in starts]
     best = None
     for transform in [*starts, *pointwise, *polished]:
-        ver = verify_clouds(a, b, transform, backend, reach, params.max_rmse * scale, params.min_overlap,
-                            params.penetration_depth * scale, index_of, min_facing=0.0)
-        if not ver.accepted or one_face_seam(a, b, transform, reach, index_of):
+        passed = thin_cut_check(a, b, transform, spacing, params, scale, backend, index_of)
+        if passed is None:
             continue
-        continues, near = seam.skin_points(a, b, transform, contact, scale)
-        if near >= PICK_SKIN_NEAR and continues >= THIN_PICK_SKIN * near and (
-                best is None or continues * best[2] > best[1] * near):
+        ver, continues, near = passed
+        if best is None or continues * best[2] > best[1] * near:
             best = (transform, continues, near, ver)
     if best is None:
         return None
