@@ -584,6 +584,44 @@ def test_a_board_broken_across_is_matched_from_starts_framed_by_its_boards(backe
         assert not match_pair(a, b, backend=backend).accepted
 
 
+def test_a_pot_broken_smooth_beside_faceted_leaves_is_matched_on_one_piece_s_creases(backend, monkeypatch):
+    """A plant cut smooth through its pot: the piece holding the leaves and stem reads as rough on
+    its faceted skin as on its break, so its roughness pick misses the break (refused). Its break
+    read off its creases (`sheets.crease_sample`) against the partner's pick is matched right."""
+    from relicgpu.pair import pipeline
+
+    (a, b), truth, _ = _thin_cloud_pair("plant-smooth", 8, 79)
+    result = match_pair(a, b, backend=backend)
+    assert "b's break read off its creases" in result.reason, result.reason
+    _assert_right(result, b, truth)
+    if backend == "numpy":
+        monkeypatch.setattr(pipeline, "bulk_reads_rough", lambda *args: False)
+        assert not match_pair(a, b, backend=backend).accepted
+
+
+def test_a_board_s_broken_strip_is_read_off_its_creases_where_the_skin_reads_rough():
+    """`sheets.crease_sample` picks the end strip of a board 0.02 thick (normals turned 90 degrees
+    from both faces'), not its faces; `points.bulk_reads_rough` is false for the board's flat faces
+    and true where every face's normals scatter as a break's do."""
+    from relicgpu.cloud.points import bulk_reads_rough
+    from relicgpu.pair.sheets import crease_sample
+    from relicgpu.pair.verify import SurfaceSample
+
+    rng = np.random.default_rng(2)
+    faces = np.column_stack([rng.uniform(0, 0.5, 3200), rng.uniform(0, 0.3, 3200), np.repeat([0.0, 0.02], 1600)])
+    end = np.column_stack([np.zeros(60), rng.uniform(0, 0.3, 60), rng.uniform(0, 0.02, 60)])
+    points = np.concatenate([faces, end])
+    normals = np.concatenate([np.repeat([[0, 0, -1.0], [0, 0, 1.0]], 1600, axis=0), np.tile([-1.0, 0, 0], (60, 1))])
+    sample = SurfaceSample(points[:0], np.zeros(0, np.int64), normals[:0], points, normals)
+    picked = crease_sample(points, normals, sample, Params(), 0.5)
+    on_end = picked.fracture[:, 0] == 0.0
+    assert on_end.sum() >= 45 and on_end.mean() >= 0.5, (on_end.sum(), len(on_end))
+    np.testing.assert_allclose(picked.fracture_normals[on_end], [[-1.0, 0, 0]] * int(on_end.sum()))
+    assert not bulk_reads_rough(points, normals)
+    scattered = normals + rng.normal(scale=0.4, size=normals.shape)
+    assert bulk_reads_rough(points, scattered / np.linalg.norm(scattered, axis=1, keepdims=True))
+
+
 def test_a_break_point_is_framed_by_its_break_normal_and_its_boards():
     """`sheets.board_frames` on a board 0.02 thick (two faces) broken across at x = 0: each break
     point's frame is (its break normal, the board's normal up to its side, their cross product)."""

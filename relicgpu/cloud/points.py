@@ -243,16 +243,7 @@ def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_
     -------
     (N,) array in [0, 1]
     """
-    from scipy.spatial import cKDTree
-
-
-    k = min(k, len(points))
-    _, idx = cKDTree(points).query(points, k=k)
-    idx = idx.reshape(len(points), k)
-    parallel = np.abs(np.einsum("nkd,nd->nk", normals[idx], normals))
-    angles = np.arccos(np.clip(parallel[:, 1:], 0.0, 1.0)) if k > 1 else np.zeros((len(points), 1))
-    rough = np.quantile(angles, ROUGH_QUANTILE, axis=1)
-    weight = parallel ** ROUGH_PARALLEL_POWER
+    angles, rough, idx, weight = _roughness(points, normals, k)
     likelihood = _rough_split(_smoothed_log(rough, idx, weight), spreads, majority)
     if majority or np.count_nonzero(likelihood >= 0.5) >= EMPTY_PICK * len(points):
         return likelihood
@@ -261,6 +252,29 @@ def fracture_likelihood(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_
     if not faceted.any():
         return likelihood
     return _rough_split(_smoothed_log(np.where(faceted, facet, rough), idx, weight), spreads, majority)
+
+
+def bulk_reads_rough(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_NORMAL_NEIGHBOURS) -> bool:
+    """Whether most of a cloud reads as rough as its break: the bulk's spread above its median
+    roughness (`fracture_likelihood`'s split) lies above Otsu's split of the (N, 3) points' smoothed
+    log roughness, so that the split is set by the skin's own roughness (a plant's faceted leaves
+    and stem) and not between skin and break."""
+    x = _smoothed_log(*_roughness(points, normals, k)[1:])
+    centre = np.median(x)
+    return bool(centre + ROUGH_SPREADS * 1.4826 * np.median(np.abs(x - centre)) > otsu_split(x, np.ones(len(x))))
+
+
+def _roughness(points: np.ndarray, normals: np.ndarray, k: int):
+    """Each point's angles (N, k - 1) to its k nearest points' normals (unsigned), its roughness
+    (N,) (their ROUGH_QUANTILE), the neighbours (N, k) and their bilateral weights (N, k)."""
+    from scipy.spatial import cKDTree
+
+    k = min(k, len(points))
+    _, idx = cKDTree(points).query(points, k=k)
+    idx = idx.reshape(len(points), k)
+    parallel = np.abs(np.einsum("nkd,nd->nk", normals[idx], normals))
+    angles = np.arccos(np.clip(parallel[:, 1:], 0.0, 1.0)) if k > 1 else np.zeros((len(points), 1))
+    return angles, np.quantile(angles, ROUGH_QUANTILE, axis=1), idx, parallel ** ROUGH_PARALLEL_POWER
 
 
 def _smoothed_log(rough: np.ndarray, idx: np.ndarray, weight: np.ndarray) -> np.ndarray:

@@ -19,9 +19,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from dataclasses import replace
+
 from ..cloud.points import even_subsample
 from .cloudmatch import THIN_WIDE_GATE, thin_cut_check
 from .icp import distinct_poses, refine_point_to_plane
+from .ppf import smoothed_normals
 from . import seam
 from .verify import SurfaceSample
 
@@ -46,6 +49,13 @@ FACING = -0.5
 ALONG = 0.7
 CONTACT_SPACINGS = 1.5
 POLISH_ROUNDS = 20
+# A scanned piece whose skin reads as rough as its break (a plant's faceted leaves and stem beside
+# a pot wall broken smooth) has its break strip read off its creases instead: the points whose
+# normal turns more than CREASE_COS (60 degrees) from at least CREASE_SHARE of their
+# CREASE_NEIGHBOURS nearest points' (a strip across a board turns 90 degrees from both faces).
+CREASE_NEIGHBOURS = 12
+CREASE_COS = 0.5
+CREASE_SHARE = 0.3
 
 
 def board_frames(sample: SurfaceSample) -> tuple[np.ndarray, np.ndarray]:
@@ -120,6 +130,24 @@ def sheet_starts(a: SurfaceSample, b: SurfaceSample, contact: float, count: int 
     poses[:, :3, :3], poses[:, :3, 3] = rot[top], shift[top]
     order = np.argsort(-score, kind="stable")
     return poses[distinct_poses(poses, order, count, 2.0 * contact)]
+
+
+def crease_sample(points: np.ndarray, normals: np.ndarray, sample: SurfaceSample, params, scale: float
+                  ) -> SurfaceSample:
+    """`sample` with its fracture points those of the (N, 3) points whose (N, 3) scanned unit normals
+    turn from their neighbours' as a board's broken strip does (CREASE_SHARE), at most
+    `Params.icp_points` spread evenly."""
+    from scipy.spatial import cKDTree
+
+    k = min(CREASE_NEIGHBOURS + 1, len(points))
+    _, idx = cKDTree(points).query(points, k=k)
+    turned = np.abs(np.einsum("nkd,nd->nk", normals[idx[:, 1:]], normals)) < CREASE_COS
+    pick = np.flatnonzero(turned.mean(axis=1) >= CREASE_SHARE)
+    pick = pick[even_subsample(points[pick], params.icp_points)]
+    return replace(sample, fracture=points[pick], fracture_normals=normals[pick],
+                   fracture_region=np.zeros(len(pick), np.int64), fracture_weight=None,
+                   fracture_plane_normals=smoothed_normals(points[pick], normals[pick],
+                                                           params.ppf_normal_radius * scale))
 
 
 def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, index_of):
