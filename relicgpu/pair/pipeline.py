@@ -180,8 +180,9 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
                 result: PairMatch) -> PairMatch:
     """Two clouds whose picks are thin walls' bands (`cloudmatch.thin_pick`) matched on them as a thin
     cut is (`cloudmatch.thin_wall_fit`), then from starts framed by their boards (`sheets.sheet_fit`),
-    then, with scanned normals, the same with one piece's break read off its creases
-    (`sheets.crease_sample`): result kept where no fit passes."""
+    then, with scanned normals, from starts framed by their boards with the break of a piece whose
+    skin reads as rough as its break read off its creases (`sheets.crease_sample`), where the
+    partner's skin reads smoother than its break: result kept where no fit passes."""
     t0 = time.perf_counter()
     spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
     skins = [cloud_skin(p.fragment, p.sample) for p in (pa, pb)]
@@ -195,11 +196,10 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
             found = sheet_fit(skins, [pa.sample, pb.sample], spacing, params, scale, be, index_of)
     scanned = [getattr(p.fragment, "normals", None) for p in (pa, pb)]
     for i in (0, 1) if found is None and all(n is not None for n in scanned) else ():
-        # the piece whose roughness pick holds its break (a thin band, its skin smoother than its
-        # break) matched on the creases of one whose skin reads as rough as its break
+        # the piece whose roughness pick holds its break (its skin smoother than its break)
+        # matched on the creases of one whose skin reads as rough as its break
         points = [np.asarray(p.fragment.vertices, np.float64) for p in (pa, pb)]
-        if not (thin[i] and bulk_reads_rough(points[1 - i], scanned[1 - i])
-                and not bulk_reads_rough(points[i], scanned[i])):
+        if not bulk_reads_rough(points[1 - i], scanned[1 - i]) or bulk_reads_rough(points[i], scanned[i]):
             continue
         samples = [pa.sample, pb.sample]
         samples[1 - i] = crease_sample(points[1 - i], scanned[1 - i], samples[1 - i], params, scale)
