@@ -30,7 +30,7 @@ from .result import PairMatch
 from . import seam
 from .fine import fine_stage
 from .meshfit import BANDED, band_fit, skin_over_band, skin_pick, verify_mesh
-from .sheets import crease_sample, sheet_fit
+from .sheets import CREASE_STARTS, crease_sample, sheet_fit
 from .skinhold import held_by_skin, skin_continues
 from .verify import index_cache, rim_agreement
 
@@ -204,7 +204,7 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
         samples = [pa.sample, pb.sample]
         samples[1 - i] = crease_sample(points[1 - i], scanned[1 - i], samples[1 - i], params, scale)
         if thin_pick(skins[1 - i][0], samples[1 - i], spacing):
-            found = sheet_fit(skins, samples, spacing, params, scale, be, index_of)
+            found = sheet_fit(skins, samples, spacing, params, scale, be, index_of, CREASE_STARTS)
         if found is not None:
             found = (*found[:2], f"{found[2]} ({'ab'[1 - i]}'s break read off its creases)")
             break
