@@ -587,15 +587,15 @@ def test_a_board_broken_across_is_matched_from_starts_framed_by_its_boards(backe
 def test_a_pot_broken_smooth_beside_faceted_leaves_is_matched_on_one_piece_s_creases(backend, monkeypatch):
     """A plant cut smooth through its pot: the piece holding the leaves and stem reads as rough on
     its faceted skin as on its break, so its roughness pick misses the break (refused). Its break
-    read off its creases (`sheets.crease_sample`) against the partner's pick is matched right."""
-    from relicgpu.pair import pipeline
+    read off its creases (`sheets.crease_fit`) against the partner's pick is matched right."""
+    from relicgpu.pair import sheets
 
     (a, b), truth, _ = _thin_cloud_pair("plant-smooth", 8, 79)
     result = match_pair(a, b, backend=backend)
     assert "b's break read off its creases" in result.reason, result.reason
     _assert_right(result, b, truth)
     if backend == "numpy":
-        monkeypatch.setattr(pipeline, "bulk_reads_rough", lambda *args: False)
+        monkeypatch.setattr(sheets, "bulk_reads_rough", lambda *args: False)
         assert not match_pair(a, b, backend=backend).accepted
 
 

@@ -11,7 +11,6 @@ from dataclasses import replace
 import numpy as np
 
 from ..backends import resolve
-from ..cloud.points import bulk_reads_rough
 from .icp import (apply, batched_icp, distinct_poses, facing_poses, invert, ransac_poses, refine_point_to_plane,
                   rotation_angle_deg, same_pose)
 from ..io.fragment import is_cloud
@@ -30,7 +29,7 @@ from .result import PairMatch
 from . import seam
 from .fine import fine_stage
 from .meshfit import BANDED, band_fit, skin_over_band, skin_pick, verify_mesh
-from .sheets import CREASE_STARTS, crease_sample, sheet_fit
+from .sheets import crease_fit, sheet_fit
 from .skinhold import held_by_skin, skin_continues
 from .verify import index_cache, rim_agreement
 
@@ -180,9 +179,8 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
                 result: PairMatch) -> PairMatch:
     """Two clouds whose picks are thin walls' bands (`cloudmatch.thin_pick`) matched on them as a thin
     cut is (`cloudmatch.thin_wall_fit`), then from starts framed by their boards (`sheets.sheet_fit`),
-    then, with scanned normals, from starts framed by their boards with the break of a piece whose
-    skin reads as rough as its break read off its creases (`sheets.crease_sample`), where the
-    partner's skin reads smoother than its break: result kept where no fit passes."""
+    then, with scanned normals, so with the break of a piece whose skin reads as rough as its break
+    read off its creases (`sheets.crease_fit`): result kept where no fit passes."""
     t0 = time.perf_counter()
     spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
     skins = [cloud_skin(p.fragment, p.sample) for p in (pa, pb)]
@@ -195,19 +193,9 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
         if found is None:
             found = sheet_fit(skins, [pa.sample, pb.sample], spacing, params, scale, be, index_of)
     scanned = [getattr(p.fragment, "normals", None) for p in (pa, pb)]
-    for i in (0, 1) if found is None and all(n is not None for n in scanned) else ():
-        # the piece whose roughness pick holds its break (its skin smoother than its break)
-        # matched on the creases of one whose skin reads as rough as its break
-        points = [np.asarray(p.fragment.vertices, np.float64) for p in (pa, pb)]
-        if not bulk_reads_rough(points[1 - i], scanned[1 - i]) or bulk_reads_rough(points[i], scanned[i]):
-            continue
-        samples = [pa.sample, pb.sample]
-        samples[1 - i] = crease_sample(points[1 - i], scanned[1 - i], samples[1 - i], params, scale)
-        if thin_pick(skins[1 - i][0], samples[1 - i], spacing):
-            found = sheet_fit(skins, samples, spacing, params, scale, be, index_of, CREASE_STARTS)
-        if found is not None:
-            found = (*found[:2], f"{found[2]} ({'ab'[1 - i]}'s break read off its creases)")
-            break
+    if found is None and all(n is not None for n in scanned):
+        found = crease_fit([np.asarray(p.fragment.vertices, np.float64) for p in (pa, pb)], scanned, skins,
+                           [pa.sample, pb.sample], spacing, params, scale, be, index_of)
     if found is None:
         return result
     (transform, ver, reason), timings = found, {**timings, "seam": time.perf_counter() - t0}

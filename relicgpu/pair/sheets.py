@@ -14,15 +14,20 @@ skin beside the seam continues the partner's most among those that verify as a t
 (`cloudmatch.thin_wall_fit`'s checks), each as it is, polished point to plane on the break, and
 polished on the skin across the seam (`seam.seam_polish`: on some pairs it slides the true pose
 off its strips; on others it is what brings a start there).
+
+A scanned piece whose skin reads as rough as its break (`points.bulk_reads_rough`: a plant's
+leaves and stem faceted at about a point spacing) picks no break by roughness; its break strip is
+read off its creases instead (`crease_sample`) and started so against a partner whose pick holds its
+break (`crease_fit`).
 """
 from __future__ import annotations
 
-import numpy as np
-
 from dataclasses import replace
 
-from ..cloud.points import even_subsample
-from .cloudmatch import THIN_WIDE_GATE, thin_cut_check
+import numpy as np
+
+from ..cloud.points import bulk_reads_rough, even_subsample
+from .cloudmatch import THIN_WIDE_GATE, thin_cut_check, thin_pick
 from .icp import distinct_poses, refine_point_to_plane
 from .ppf import smoothed_normals
 from . import seam
@@ -182,3 +187,25 @@ def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, ind
     transform, continues, near, ver = best
     return transform, ver, (f"accepted (boards' breaks framed by their boards: {continues} of {near} skin points "
                             "near the seam continue the partner's)")
+
+
+def crease_fit(points, normals, skins, samples, spacing: float, params, scale: float, backend, index_of):
+    """`sheet_fit` (CREASE_STARTS starts) of two scanned clouds, one whose skin reads as rough as its
+    break (`points.bulk_reads_rough`) matched on its creases (`crease_sample`) against the other,
+    whose skin does not, on its pick: (transform, Verification, reason) or None.
+
+    Parameters
+    ----------
+    points, normals : the two pieces' (N_i, 3) points and scanned unit normals
+    skins, samples, spacing, ... : as `sheet_fit`'s
+    """
+    rough = [bulk_reads_rough(p, n) for p, n in zip(points, normals)]
+    if rough[0] == rough[1]:
+        return None
+    i = rough.index(True)
+    samples = list(samples)
+    samples[i] = crease_sample(points[i], normals[i], samples[i], params, scale)
+    if not thin_pick(skins[i][0], samples[i], spacing):
+        return None
+    found = sheet_fit(skins, samples, spacing, params, scale, backend, index_of, CREASE_STARTS)
+    return None if found is None else (*found[:2], f"{found[2]} ({'ab'[i]}'s break read off its creases)")
