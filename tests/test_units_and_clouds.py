@@ -575,13 +575,8 @@ def test_a_board_broken_across_is_matched_from_starts_framed_by_its_boards(backe
     fixes the pose up to the board's side (`sheets.sheet_starts`); the fit found so is right."""
     from relicgpu.pair import pipeline
 
-    (a, b), truth, _ = _thin_cloud_pair("shelf02-rough", 0, 2)
-    result = match_pair(a, b, backend=backend)
-    assert "framed by their boards" in result.reason, result.reason
-    _assert_right(result, b, truth)
-    if backend == "numpy":
-        monkeypatch.setattr(pipeline, "sheet_fit", lambda *args: None)
-        assert not match_pair(a, b, backend=backend).accepted
+    _thin_pair_right_and_refused_without(("shelf02-rough", 0, 2), "framed by their boards", backend, monkeypatch,
+                                         pipeline, "sheet_fit", None)
 
 
 def test_a_pot_broken_smooth_beside_faceted_leaves_is_matched_on_one_piece_s_creases(backend, monkeypatch):
@@ -590,12 +585,19 @@ def test_a_pot_broken_smooth_beside_faceted_leaves_is_matched_on_one_piece_s_cre
     read off its creases (`sheets.crease_fit`) against the partner's pick is matched right."""
     from relicgpu.pair import sheets
 
-    (a, b), truth, _ = _thin_cloud_pair("plant-smooth", 8, 79)
+    _thin_pair_right_and_refused_without(("plant-smooth", 8, 79), "b's break read off its creases", backend,
+                                         monkeypatch, sheets, "bulk_reads_rough", False)
+
+
+def _thin_pair_right_and_refused_without(case, why, backend, monkeypatch, module, name, answer):
+    """`_thin_cloud_pair(*case)` matched right with `why` in its reason, and (numpy) refused once
+    `module.name` answers `answer` whatever it is asked."""
+    (a, b), truth, _ = _thin_cloud_pair(*case)
     result = match_pair(a, b, backend=backend)
-    assert "b's break read off its creases" in result.reason, result.reason
+    assert why in result.reason, result.reason
     _assert_right(result, b, truth)
     if backend == "numpy":
-        monkeypatch.setattr(sheets, "bulk_reads_rough", lambda *args: False)
+        monkeypatch.setattr(module, name, lambda *args: answer)
         assert not match_pair(a, b, backend=backend).accepted
 
 
