@@ -161,7 +161,7 @@ class Params:
     # band faces over fewer points than its skins touch side by side (None: never)
     facing_rims: float | None = 0.4
     # clouds: a flat cut whose rim and face the partner's hold by at least min_plane
-    # (`planar.fit_score`), with no fit at another turn close (`pipeline._match_planes`), is
+    # (`planar.fit_score`), with no fit at another turn close (`cutfit.match_planes`), is
     # taken before the crease regions are tried (None: never)
     min_plane: float | None = 0.3
     outline_radius: float = 0.05

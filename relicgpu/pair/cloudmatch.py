@@ -111,7 +111,7 @@ LOOSE_CURVED = 0.02
 # clouds (right 0.11 and up).
 MIN_PICK_SKIN = 0.05
 PICK_SKIN_NEAR = 20
-# Flat cuts (`planar`, `pipeline._match_planes`): the best polished fit of the candidate cut
+# Flat cuts (`planar`, `cutfit.match_planes`): the best polished fit of the candidate cut
 # planes is taken where no fit turned PLANE_RIVAL_DEG from it, or moving b's plane PLANE_RIVAL_SLIDE
 # (a share of the scale) from where it puts it, scores PLANE_RIVALS of it. Set on the corpus's
 # voronoi-clean clouds with normals, seeds 0-35 (docs/benchmarks.md): right fits' best rivals
@@ -394,7 +394,7 @@ def verify_clouds(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, bac
 # its median point lies within THIN_PICK spacings of the skin (corpus vessel-clean clouds with
 # normals, seeds 0-23: 1.1-3.0, 2.3 or less on both pieces in 20 of 24 pairs; rough, smooth and
 # Voronoi cuts, seeds 0-11: 0.8-6.5, both under 2.3 in none). Two such bands touch over a strip,
-# the cut meeting the partner's skin edge-on there, as a thin flat cut does (`pipeline._match_planes`):
+# the cut meeting the partner's skin edge-on there, as a thin flat cut does (`cutfit.match_planes`):
 # a fit of them is polished on the skin across the seam, verified without the facing check, with
 # contact counted within RIM_HIT spacings, and kept where at least
 # THIN_PICK_SKIN of the free skin points near the partner's continue it (vessel-clean seeds 3-22,

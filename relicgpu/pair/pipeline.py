@@ -16,14 +16,13 @@ from .icp import (apply, batched_icp, distinct_poses, facing_poses, invert, rans
 from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params, second_reading_params
-from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP, MIN_FACING,
-                         PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS, point_spacing, REGION_FACING, REGION_OVERLAP,
-                         REGION_RESIDUAL, REGION_TURNS, RESIDUAL_SPACINGS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS,
+from .cloudmatch import (AMBIGUOUS_SHARE, LOOSE_CURVED, LOOSE_FACING, LOOSE_OVERLAP, point_spacing, REGION_FACING,
+                         REGION_OVERLAP, REGION_RESIDUAL, REGION_TURNS, SKIN_FITS, SKIN_RIVAL_DEG, SKIN_RIVALS,
                          SKIN_RIVALS_ESTIMATED, WIDE_SPREADS, cloud_params, cloud_sample, cloud_skin, curvedness,
                          majority_samples, thin_pick, thin_wall_fit, verify_clouds)
+from .cutfit import match_planes
 from .facets import facet_fits
 from .prepare import Prepared, _ppf_table, _second_reading, prepare
-from .planar import RIM_HIT, apart, is_thin, polished_fits
 from .ppf import vote_poses
 from .result import PairMatch
 from . import seam
@@ -58,7 +57,6 @@ SECOND_READING_SCORE = 0.5
 # a fit accepted on its outline with a residual over max_rmse, or on its rims facing too little
 # (`meshfit.band_fit`), is less sure: the assembly weighs it this much
 OUTLINE_SCORE = 0.5
-PLANE_RESIDUAL_FLOOR = 1e-5  # of the scale: a flat cut scanned without noise has no roughness to bound by
 
 
 def pair_scale(a, b, params: Params) -> float:
@@ -215,7 +213,7 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     its skin, fits touching and facing less (`cloudmatch.LOOSE_OVERLAP`, `LOOSE_FACING`: a smooth
     cut's region holds skin beyond a shallow rim) may, on their skin alone, where both regions
     curve (`LOOSE_CURVED`)."""
-    planar = _match_planes(pa, pb, params, be, scale, timings)
+    planar = match_planes(pa, pb, params, be, scale, timings)
     if planar is not None:
         return planar
     # a flat break fits its partner at one turn only, which its outline alone decides
@@ -263,50 +261,6 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     if rivals and rivals[0] >= AMBIGUOUS_SHARE * overlap:
         return replace(fit, accepted=False, score=0.0, reason="ambiguous: crease regions fit at two poses alike "
                        f"(overlap {overlap:.2f} and {rivals[0]:.2f})")
-    return fit
-
-
-def _match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict) -> PairMatch | None:
-    """Two clouds matched on a flat or curved cut (`planar`): the best of `planar.polished_fits`, where it scores at
-    least `Params.min_plane`, no fit turned more than PLANE_RIVAL_DEG from it or shifted more than PLANE_RIVAL_SLIDE
-    scores PLANE_RIVALS of it, and it verifies (touching as a region fit does, facing as any cloud fit). A best fit
-    that verifies but has such a rival is a symmetric cut: refused as ambiguous. None where no fit decides (the
-    crease regions are tried)."""
-    if params.min_plane is None or not (pa.planes and pb.planes):
-        return None
-    t0 = time.perf_counter()
-    spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
-    contact = params.contact_distance * scale
-    fits = polished_fits(pa.planes, pb.planes, spacing, contact, scale, index_cache(be))
-    timings = {**timings, "planes": time.perf_counter() - t0}
-    if not fits or fits[0][0] < params.min_plane:
-        return None
-    score, transform, (ia, ib) = fits[0]
-    centre = pb.planes[ib][0].frame[:3, 3]
-    rival = max([s for s, t, _ in fits[1:] if apart(t, transform, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE * scale, centre)],
-                default=0.0)
-    (plane_a, sa, rough_a), (plane_b, sb, rough_b) = pa.planes[ia], pb.planes[ib]
-    # the planes lie face to face and each piece behind its own: beside the cut the skin touches across
-    # the seam side by side (facing 0.69-0.79 at voronoi-clean clouds' true poses, where region fits
-    # need REGION_FACING), so only the clouds' own facing bar; a thin cut's fit touches mostly along
-    # the seam, where the cut face meets the partner's skin edge-on (facing 0.35-0.7 at a bookshelf's
-    # true pose), and its face is a few points wide (two samplings lie up to RIM_HIT spacings apart,
-    # and its roughness, over strips a point or two wide, tells nothing of theirs)
-    thin = is_thin(plane_a, spacing) and is_thin(plane_b, spacing)
-    bound = max(REGION_RESIDUAL * np.hypot(rough_a, rough_b), PLANE_RESIDUAL_FLOOR * scale,
-                RESIDUAL_SPACINGS * spacing if thin else 0.0)
-    ver = verify_clouds(sa, sb, transform, be, max(contact, RIM_HIT * spacing) if thin else contact, bound,
-                        REGION_OVERLAP, params.penetration_depth * scale, index_cache(be),
-                        min_facing=0.0 if thin else MIN_FACING)
-    if not ver.accepted:
-        return None
-    cut = "a flat cut" if plane_a.bend is None and plane_b.bend is None else "a curved cut"
-    fit = PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap, ver.penetration,
-                    np.zeros((0, 2), np.int64), -1, -1, f"accepted ({cut}: its rim and face held {score:.2f} by "
-                    f"the partner's, {rival:.2f} at another pose)", timings)
-    if rival >= PLANE_RIVALS * score:
-        return replace(fit, accepted=False, score=0.0, reason=f"ambiguous: {cut} held {score:.2f} by the "
-                       f"partner's and {rival:.2f} at another pose")
     return fit
 
 

@@ -14,7 +14,7 @@ with the skin's normal there. For two planes put face to face the in-plane turn 
 fit is scored by the share of rim points of either piece that land on the other's rim with the
 same skin normal, times the share of the cut faces that overlap (`plane_fits`, `fit_score`).
 The rims leave a near-elliptic cut a few degrees loose; the best distinct fits are polished on
-the skin across the seam and scored again (`polished_fits`). `pipeline._match_planes` takes the
+the skin across the seam and scored again (`polished_fits`). `cutfit.match_planes` takes the
 best where no other pose holds nearly as well, and calls the cut ambiguous otherwise.
 
 A curved cut through thin parts (a smooth break through a pot's wall, a stem and leaves; boards)
@@ -78,7 +78,7 @@ MIN_RIM_POINTS = 12
 # A thin cut (boards, leaves, a pot's wall cut across): the median of its face's points lies within
 # THIN_CUT spacings of its rim (the corpus's Voronoi cut faces with normals, seeds 0-47: 1.5 and up;
 # cuts across a bookshelf's boards and a plant 0.6-1.2, or 1.6-3.0 where a cut runs along a board).
-# Laid on the partner's it touches mostly along the seam (`pipeline._match_planes`).
+# Laid on the partner's it touches mostly along the seam (`cutfit.match_planes`).
 THIN_CUT = 1.3
 # The POLISH best fits that differ by DISTINCT_DEG of turn or DISTINCT_SLIDE of shift (shares of
 # the scale) are polished on the skin across the seam (`seam.seam_polish`: a flat face holds

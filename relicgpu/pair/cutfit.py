@@ -1,0 +1,101 @@
+"""Two clouds matched on a flat or curved cut: the fits of `planar.polished_fits` verified, and the one taken where
+its rims and face decide, or where they hold several alike, its skin across the seam."""
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from .cloudmatch import (MIN_FACING, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS, REGION_OVERLAP,
+                         REGION_RESIDUAL, RESIDUAL_SPACINGS, SKIN_RIVAL_DEG, SKIN_RIVALS, SKIN_RIVALS_ESTIMATED,
+                         point_spacing, verify_clouds)
+from .icp import rotation_angle_deg
+from ..params import Params
+from .planar import RIM_HIT, apart, is_thin, polished_fits
+from .prepare import Prepared
+from .result import PairMatch
+from . import seam
+from .verify import index_cache
+
+PLANE_RESIDUAL_FLOOR = 1e-5  # of the scale: a flat cut scanned without noise has no roughness to bound by
+
+
+def match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict) -> PairMatch | None:
+    """Two clouds matched on a flat or curved cut (`planar`): the best of `planar.polished_fits`, where it scores at
+    least `Params.min_plane`, no fit turned more than PLANE_RIVAL_DEG from it or shifted more than PLANE_RIVAL_SLIDE
+    scores PLANE_RIVALS of it, and it verifies (touching as a region fit does, facing as any cloud fit). A best fit
+    that verifies but has such a rival is a symmetric cut, or one of a few copies of the right fit slid or turned a
+    little: of the fits scoring PLANE_RIVALS of it, the one whose skin continues the partner's most is taken as
+    `pipeline._by_skin` takes a region fit (`_plane_by_skin`); else refused as ambiguous. None where no fit decides (the
+    crease regions are tried)."""
+    if params.min_plane is None or not (pa.planes and pb.planes):
+        return None
+    t0 = time.perf_counter()
+    spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
+    contact = params.contact_distance * scale
+    fits = polished_fits(pa.planes, pb.planes, spacing, contact, scale, index_cache(be))
+    timings = {**timings, "planes": time.perf_counter() - t0}
+    if not fits or fits[0][0] < params.min_plane:
+        return None
+    score, transform, (_, ib) = fits[0]
+    centre = pb.planes[ib][0].frame[:3, 3]
+    rival = max([s for s, t, _ in fits[1:] if apart(t, transform, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE * scale, centre)],
+                default=0.0)
+    fit = _plane_fit(pa, pb, fits[0], params, be, scale, spacing, timings, f"{rival:.2f} at another pose")
+    if fit is None or rival < PLANE_RIVALS * score:
+        return fit
+    cut = fit.reason.split(":")[0][len("accepted ("):]
+    chosen = _plane_by_skin(pa, pb, [f for f in fits if f[0] >= PLANE_RIVALS * score], params, be, scale, spacing,
+                            timings)
+    return chosen or replace(fit, accepted=False, score=0.0, reason=f"ambiguous: {cut} held {score:.2f} by the "
+                             f"partner's and {rival:.2f} at another pose")
+
+
+def _plane_fit(pa: Prepared, pb: Prepared, fit: tuple, params: Params, be, scale: float, spacing: float,
+               timings: dict, rivals: str) -> PairMatch | None:
+    """A plane fit (score, transform, (ia, ib)) of `planar.polished_fits` verified; None where it fails."""
+    score, transform, (ia, ib) = fit
+    (plane_a, sa, rough_a), (plane_b, sb, rough_b) = pa.planes[ia], pb.planes[ib]
+    contact = params.contact_distance * scale
+    # the planes lie face to face and each piece behind its own: beside the cut the skin touches across
+    # the seam side by side (facing 0.69-0.79 at voronoi-clean clouds' true poses, where region fits
+    # need REGION_FACING), so only the clouds' own facing bar; a thin cut's fit touches mostly along
+    # the seam, where the cut face meets the partner's skin edge-on (facing 0.35-0.7 at a bookshelf's
+    # true pose), and its face is a few points wide (two samplings lie up to RIM_HIT spacings apart,
+    # and its roughness, over strips a point or two wide, tells nothing of theirs)
+    thin = is_thin(plane_a, spacing) and is_thin(plane_b, spacing)
+    bound = max(REGION_RESIDUAL * np.hypot(rough_a, rough_b), PLANE_RESIDUAL_FLOOR * scale,
+                RESIDUAL_SPACINGS * spacing if thin else 0.0)
+    ver = verify_clouds(sa, sb, transform, be, max(contact, RIM_HIT * spacing) if thin else contact, bound,
+                        REGION_OVERLAP, params.penetration_depth * scale, index_cache(be),
+                        min_facing=0.0 if thin else MIN_FACING)
+    if not ver.accepted:
+        return None
+    cut = "a flat cut" if plane_a.bend is None and plane_b.bend is None else "a curved cut"
+    return PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap, ver.penetration,
+                     np.zeros((0, 2), np.int64), -1, -1, f"accepted ({cut}: its rim and face held {score:.2f} by "
+                     f"the partner's, {rivals})", timings)
+
+
+def _plane_by_skin(pa: Prepared, pb: Prepared, tied: list, params: Params, be, scale: float, spacing: float,
+                   timings: dict) -> PairMatch | None:
+    """Of plane fits held alike by their rims and faces (`tied`, best first), the one whose skin continues the
+    partner's most across the seam (`seam.skin_continuation`), where it continues by at least `Params.min_skin`,
+    every fit turned over SKIN_RIVAL_DEG from it continues less than SKIN_RIVALS (SKIN_RIVALS_ESTIMATED without
+    scanned normals) times as much, and it verifies; None otherwise."""
+    if params.min_skin is None:
+        return None
+    contact = params.contact_distance * scale
+    skins = [seam.skin_continuation(pa.planes[ia][1], pb.planes[ib][1], t, contact, scale) for _, t, (ia, ib) in tied]
+    best = int(np.argmax(skins))
+    transform = tied[best][1]
+    turned = [s for s, (_, t, _) in zip(skins, tied) if rotation_angle_deg(t[:3, :3] @ transform[:3, :3].T) > SKIN_RIVAL_DEG]
+    scanned = all(getattr(p.fragment, "normals", None) is not None for p in (pa, pb))
+    if skins[best] < params.min_skin or (turned and max(turned) >= (SKIN_RIVALS if scanned else SKIN_RIVALS_ESTIMATED)
+                                         * skins[best]):
+        return None
+    alike = max(s for k, (s, *_) in enumerate(tied) if k != best)
+    return _plane_fit(pa, pb, tied[best], params, be, scale, spacing, timings,
+                      f"{alike:.2f} at another pose; its skin continues the partner's {skins[best]:.2f} across the "
+                      f"seam, {max(turned, default=0.0):.2f} at another turn")
