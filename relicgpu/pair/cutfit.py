@@ -32,7 +32,8 @@ SKIN_TURN_WITHIN = 0.05
 def match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict) -> PairMatch | None:
     """Two clouds matched on a flat or curved cut (`planar`): the best of `planar.polished_fits`, where it scores at
     least `Params.min_plane`, no fit turned more than PLANE_RIVAL_DEG from it or shifted more than PLANE_RIVAL_SLIDE
-    scores PLANE_RIVALS of it, and it verifies (touching as a region fit does, facing as any cloud fit). A best fit
+    scores PLANE_RIVALS of it, and it verifies (touching as a region fit does, facing as any cloud fit), each fit
+    turned in its plane to where its skin across the seam continues most first (`turned_to_skin`). A best fit
     that verifies but has such a rival is a symmetric cut, or one of a few copies of the right fit slid or turned a
     little: of the fits scoring PLANE_RIVALS of it, the one whose skin continues the partner's most is taken as
     `pipeline._by_skin` takes a region fit (`_plane_by_skin`); else refused as ambiguous. None where no fit decides (the
@@ -99,15 +100,16 @@ def _plane_by_skin(pa: Prepared, pb: Prepared, tied: list, params: Params, be, s
     skins = [seam.skin_continuation(pa.planes[ia][1], pb.planes[ib][1], t, contact, scale) for _, t, (ia, ib) in tied]
     best = int(np.argmax(skins))
     transform = tied[best][1]
-    turned = [s for s, (_, t, _) in zip(skins, tied) if rotation_angle_deg(t[:3, :3] @ transform[:3, :3].T) > SKIN_RIVAL_DEG]
+    rivals = [s for s, (_, t, _) in zip(skins, tied)
+              if rotation_angle_deg(t[:3, :3] @ transform[:3, :3].T) > SKIN_RIVAL_DEG]
     scanned = all(getattr(p.fragment, "normals", None) is not None for p in (pa, pb))
-    if skins[best] < params.min_skin or (turned and max(turned) >= (SKIN_RIVALS if scanned else SKIN_RIVALS_ESTIMATED)
-                                         * skins[best]):
+    share = SKIN_RIVALS if scanned else SKIN_RIVALS_ESTIMATED
+    if skins[best] < params.min_skin or (rivals and max(rivals) >= share * skins[best]):
         return None
     alike = max(s for k, (s, *_) in enumerate(tied) if k != best)
     return _plane_fit(pa, pb, tied[best], params, be, scale, spacing, timings,
                       f"{alike:.2f} at another pose; its skin continues the partner's {skins[best]:.2f} across the "
-                      f"seam, {max(turned, default=0.0):.2f} at another turn")
+                      f"seam, {max(rivals, default=0.0):.2f} at another turn")
 
 
 def turned_to_skin(plane_a, sa, sb, transform: np.ndarray, contact: float, scale: float) -> np.ndarray:
