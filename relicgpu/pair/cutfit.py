@@ -10,7 +10,7 @@ import numpy as np
 from .cloudmatch import (MIN_FACING, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE, PLANE_RIVALS, REGION_OVERLAP,
                          REGION_RESIDUAL, RESIDUAL_SPACINGS, SKIN_RIVAL_DEG, SKIN_RIVALS, SKIN_RIVALS_ESTIMATED,
                          point_spacing, verify_clouds)
-from .icp import axis_rotation, rotation_angle_deg
+from .icp import axis_rotation
 from ..params import Params
 from .planar import RIM_HIT, apart, is_thin, polished_fits
 from .prepare import Prepared
@@ -47,14 +47,14 @@ def match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, t
     timings = {**timings, "planes": time.perf_counter() - t0}
     if not fits or fits[0][0] < params.min_plane:
         return None
-    score, transform, (_, ib) = fits[0]
+    score, transform, (ia, ib) = fits[0]
     centre = pb.planes[ib][0].frame[:3, 3]
     rival = max([s for s, t, _ in fits[1:] if apart(t, transform, PLANE_RIVAL_DEG, PLANE_RIVAL_SLIDE * scale, centre)],
                 default=0.0)
     fit = _plane_fit(pa, pb, fits[0], params, be, scale, spacing, timings, f"{rival:.2f} at another pose")
     if fit is None or rival < PLANE_RIVALS * score:
         return fit
-    cut = fit.reason.split(":")[0][len("accepted ("):]
+    cut = _cut_name(pa.planes[ia][0], pb.planes[ib][0])
     chosen = _plane_by_skin(pa, pb, [f for f in fits if f[0] >= PLANE_RIVALS * score], params, be, scale, spacing,
                             timings)
     return chosen or replace(fit, accepted=False, score=0.0, reason=f"ambiguous: {cut} held {score:.2f} by the "
@@ -82,10 +82,13 @@ def _plane_fit(pa: Prepared, pb: Prepared, fit: tuple, params: Params, be, scale
                         min_facing=0.0 if thin else MIN_FACING)
     if not ver.accepted:
         return None
-    cut = "a flat cut" if plane_a.bend is None and plane_b.bend is None else "a curved cut"
     return PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap, ver.penetration,
-                     np.zeros((0, 2), np.int64), -1, -1, f"accepted ({cut}: its rim and face held {score:.2f} by "
-                     f"the partner's, {rivals})", timings)
+                     np.zeros((0, 2), np.int64), -1, -1, f"accepted ({_cut_name(plane_a, plane_b)}: its rim and face "
+                     f"held {score:.2f} by the partner's, {rivals})", timings)
+
+
+def _cut_name(plane_a, plane_b) -> str:
+    return "a flat cut" if plane_a.bend is None and plane_b.bend is None else "a curved cut"
 
 
 def _plane_by_skin(pa: Prepared, pb: Prepared, tied: list, params: Params, be, scale: float, spacing: float,
@@ -98,18 +101,16 @@ def _plane_by_skin(pa: Prepared, pb: Prepared, tied: list, params: Params, be, s
         return None
     contact = params.contact_distance * scale
     skins = [seam.skin_continuation(pa.planes[ia][1], pb.planes[ib][1], t, contact, scale) for _, t, (ia, ib) in tied]
-    best = int(np.argmax(skins))
-    transform = tied[best][1]
-    rivals = [s for s, (_, t, _) in zip(skins, tied)
-              if rotation_angle_deg(t[:3, :3] @ transform[:3, :3].T) > SKIN_RIVAL_DEG]
     scanned = all(getattr(p.fragment, "normals", None) is not None for p in (pa, pb))
-    share = SKIN_RIVALS if scanned else SKIN_RIVALS_ESTIMATED
-    if skins[best] < params.min_skin or (rivals and max(rivals) >= share * skins[best]):
+    won = seam.skin_winner(skins, [t for _, t, _ in tied], params.min_skin,
+                           SKIN_RIVALS if scanned else SKIN_RIVALS_ESTIMATED, SKIN_RIVAL_DEG)
+    if won is None:
         return None
+    best, rival = won
     alike = max(s for k, (s, *_) in enumerate(tied) if k != best)
     return _plane_fit(pa, pb, tied[best], params, be, scale, spacing, timings,
                       f"{alike:.2f} at another pose; its skin continues the partner's {skins[best]:.2f} across the "
-                      f"seam, {max(rivals, default=0.0):.2f} at another turn")
+                      f"seam, {rival:.2f} at another turn")
 
 
 def turned_to_skin(plane_a, sa, sb, transform: np.ndarray, contact: float, scale: float) -> np.ndarray:

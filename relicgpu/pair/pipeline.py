@@ -12,7 +12,7 @@ import numpy as np
 
 from ..backends import resolve
 from .icp import (apply, batched_icp, distinct_poses, facing_poses, invert, ransac_poses, refine_point_to_plane,
-                  rotation_angle_deg, same_pose)
+                  same_pose)
 from ..io.fragment import is_cloud
 from .lcs import circular_lcs
 from ..params import Params, second_reading_params
@@ -278,12 +278,11 @@ def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict, ri
     poses = [fit[1] for fit in accepted]
     distinct = [accepted[k] for k in distinct_poses(poses, range(len(accepted)), SKIN_FITS, contact)]
     skins = [seam.skin_continuation(sa, sb, t, contact, scale) for _, t, _, sa, sb, *_ in distinct]
-    best = int(np.argmax(skins))
-    transform = distinct[best][1]
-    rivals = [s for s, (_, t, *_) in zip(skins, distinct)
-              if rotation_angle_deg(t[:3, :3] @ transform[:3, :3].T) > SKIN_RIVAL_DEG]
-    if skins[best] < params.min_skin or (rivals and max(rivals) >= rivals_share * skins[best]):
+    won = seam.skin_winner(skins, [fit[1] for fit in distinct], params.min_skin, rivals_share, SKIN_RIVAL_DEG)
+    if won is None:
         return None
+    best = won[0]
+    transform = distinct[best][1]
     _, _, _, sa, sb, bound, index_of = distinct[best]
     t0 = time.perf_counter()
     free = [seam.free_surface(sa.surface, sa.normals, apply(transform, sb.surface), contact),

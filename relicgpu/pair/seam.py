@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .icp import apply, invert, plane_step
+from .icp import apply, invert, plane_step, rotation_angle_deg
 
 # Skin points of one piece within NEAR of the other's skin are held to it, extrapolated from the
 # other's skin points within REACH of the nearest one, turned within AGREE (cosine) of the point's
@@ -264,3 +264,17 @@ def skin_points(a, b, transform: np.ndarray, contact: float, scale: float) -> tu
         near += count
         continues += int(sum(off < CONTINUES * scale for *_, off in found))
     return continues, near
+
+
+def skin_winner(skins, poses, min_skin: float, share: float, turn_deg: float) -> tuple[int, float] | None:
+    """Of fits whose skin continues the partner's by `skins` (the (4, 4) `poses`), the one continuing
+    most, where it continues by at least `min_skin` and every fit turned over `turn_deg` from it
+    continues less than `share` times as much: (its index, the most such a turned fit continues), or
+    None (a flat break fits its partner at one turn only, which the skin across the seam decides)."""
+    best = int(np.argmax(skins))
+    turned = [s for s, t in zip(skins, poses) if rotation_angle_deg(t[:3, :3] @ poses[best][:3, :3].T) > turn_deg]
+    rival = max(turned, default=0.0)
+    if skins[best] < min_skin or (turned and rival >= share * skins[best]):
+        return None
+    return best, rival
+
