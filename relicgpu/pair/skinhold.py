@@ -24,6 +24,12 @@ from .verify import index_cache
 # boards 0.04 cut smooth, seeds 0, 1, 6, 7 (fits slid 1.2-1.8% of the size), 0.10-0.34 -> 0.39-0.81.
 # A loose fit's usual polish gives way to the wide gate's by the same margin.
 SKIN_GAIN = 0.1
+# A loose fit is set by the skin across its seam; where its polish is held there by fewer than
+# LOOSE_HELD skin points it is set by nothing and refused: Voronoi clouds without normals cut flat,
+# matched on roughness picks of skin, held by 8-25 points at 30-146 degrees off; of the right
+# loose fits recorded in the bench runs (68: slabs, vessels, boards, smooth and Voronoi cuts) the
+# fewest were held by 49.
+LOOSE_HELD = 30
 
 
 def skin_continues(pa: Prepared, pb: Prepared, params: Params, scale: float, result: PairMatch) -> PairMatch:
@@ -45,7 +51,8 @@ def held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, r
     under `seam.LOOSE`: a thin board's narrow band) the usual polish is taken, and the polish with
     the skin's gate widened at first instead where its skin continues the partner's by SKIN_GAIN
     more; elsewhere, of the two polishes, the one whose skin continues the partner's most, where
-    that beats the fit's own by SKIN_GAIN (result: kept otherwise)."""
+    that beats the fit's own by SKIN_GAIN (result: kept otherwise). A loose fit whose polish is held by
+    fewer than LOOSE_HELD skin points is refused."""
     if "seam" in result.timings or not (len(pa.sample.fracture) and len(pb.sample.fracture)):
         return result  # held by its skin already (`_by_skin`), or found on a pick of its own (`_match_strict`)
     index_of = index_cache(be)
@@ -81,6 +88,9 @@ def held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, r
     if best is None:
         return replace(result, timings=timings) if loose else result
     transform, held, ver = best
+    if loose and held < LOOSE_HELD:
+        return replace(result, accepted=False, score=0.0, timings=timings, reason=f"unsettled: loose on its break, "
+                       f"and the skin across the seam holds it at {held} points (under {LOOSE_HELD})")
     why = "loose on its break" if loose else f"slid on its break: its skin continues the partner's {bar:.2f}"
     # a cloud fit scores its overlap less its interpenetration (no reading or outline weight)
     return replace(result, transform=transform, score=ver.overlap * (1.0 - ver.penetration), rmse=ver.rmse,
