@@ -85,3 +85,37 @@ def test_skin_that_does_not_continue_holds_nothing():
     assert len(patches) == 0
     patches = seam.seam_surfaces(*skin_a, *skin_b, seam.NEAR, seam.REACH, seam.MAX_FIT)
     assert len(patches) >= 20
+
+
+def _quadric_reference(points, normals):
+    """One quadric height field over (K, 3) points along their mean normal, by numpy.linalg.lstsq."""
+    centre = points.mean(0)
+    m = normals.mean(0) / np.linalg.norm(normals.mean(0))
+    t1 = np.cross(m, [1.0, 0.0, 0.0]) if abs(m[0]) < 0.9 else np.cross(m, [0.0, 1.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    axes = np.stack([t1, np.cross(m, t1), m])
+    u, v, h = ((points - centre) @ axes.T).T
+    design = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], 1)
+    coef = np.linalg.lstsq(design, h, rcond=None)[0]
+    return centre, axes, coef, float(np.sqrt(np.mean((design @ coef - h) ** 2)))
+
+
+def test_the_batched_quadrics_fit_each_row_as_least_squares_does():
+    """`seam._quadrics` fits every row's masked points at once: each row as `numpy.linalg.lstsq` fits
+    it alone, on random patches and on adversarial ones (collinear points, whose fit has no unique
+    solution: the minimum-norm one; a patch facing along x, whose frame is taken from y)."""
+    rng = np.random.default_rng(3)
+    rows, width = 40, 30
+    points = rng.normal(size=(rows, width, 3)) * [1.0, 1.0, 0.05]
+    normals = np.array([0.0, 0.0, 1.0]) + rng.normal(size=(rows, width, 3)) * 0.1
+    mask = rng.random((rows, width)) < 0.6
+    mask[:, :seam.MIN_FIT] = True
+    points[0, :, 1] = 0.0  # collinear in the plane, flat across it
+    points[0, :, 2] = 0.0
+    points[1] = points[1][:, ::-1]
+    normals[1] = normals[1][:, ::-1]
+    centre, axes, coef, fit = seam._quadrics(points, normals, mask)
+    for k in range(rows):
+        c, a, q, f = _quadric_reference(points[k][mask[k]], normals[k][mask[k]])
+        assert np.allclose(centre[k], c, atol=1e-12) and np.allclose(axes[k], a, atol=1e-12)
+        assert np.allclose(coef[k], q, atol=1e-9) and abs(fit[k] - f) < 1e-9, k

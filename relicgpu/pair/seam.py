@@ -91,29 +91,45 @@ def _extensions(skin, skin_normals, points, point_normals, near: float, reach: f
     tree = cKDTree(skin)
     d, nearest = tree.query(points)
     close = np.flatnonzero(d < near)
-    out = []
-    for i in close:
-        idx = np.asarray(tree.query_ball_point(skin[nearest[i]], reach), np.int64)
-        idx = idx[skin_normals[idx] @ point_normals[i] > AGREE] if len(idx) else idx
-        if len(idx) < MIN_FIT:
-            continue
-        centre, axes, coef, fit = _quadric(skin[idx], skin_normals[idx])
-        uq, vq, hq = axes @ (points[i] - centre)
-        out.append((int(i), centre, axes, coef, fit, abs(hq - _height(coef, uq, vq))))
-    return len(close), out
+    if len(close) == 0:
+        return 0, []
+    balls = tree.query_ball_point(skin[nearest[close]], reach)
+    width = max(len(b) for b in balls)
+    idx = np.zeros((len(close), width), np.int64)
+    mask = np.zeros((len(close), width), bool)
+    for row, ball in enumerate(balls):
+        idx[row, :len(ball)] = ball
+        mask[row, :len(ball)] = True
+    mask &= np.einsum("kjd,kd->kj", skin_normals[idx], point_normals[close]) > AGREE
+    fitted = mask.sum(1) >= MIN_FIT
+    close, idx, mask = close[fitted], idx[fitted], mask[fitted]
+    if len(close) == 0:
+        return len(fitted), []
+    centre, axes, coef, fit = _quadrics(skin[idx], skin_normals[idx], mask)
+    uq, vq, hq = np.einsum("kij,kj->ik", axes, points[close] - centre)
+    off = np.abs(hq - _height(coef.T, uq, vq))
+    return len(fitted), [(int(i), centre[k], axes[k], coef[k], float(fit[k]), float(off[k])) for k, i in enumerate(close)]
 
 
-def _quadric(points: np.ndarray, normals: np.ndarray):
-    """A quadric height field over (K, 3) points along their mean (K, 3) normal: (3,) origin, (3, 3)
-    axes [t1, t2, n], (6,) coefficients (`_height`) and the fit's RMS residual."""
-    centre = points.mean(0)
-    m = normals.mean(0)
-    m /= np.linalg.norm(m)
-    axes = np.stack([*_frame(m), m])
-    u, v, h = ((points - centre) @ axes.T).T
-    design = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], 1)
-    coef = np.linalg.lstsq(design, h, rcond=None)[0]
-    return centre, axes, coef, float(np.sqrt(np.mean((design @ coef - h) ** 2)))
+def _quadrics(points: np.ndarray, normals: np.ndarray, mask: np.ndarray):
+    """Quadric height fields, one over each row's (K, L, 3) points where the (K, L) mask holds, along
+    their mean normal: (K, 3) origins, (K, 3, 3) axes [t1, t2, n], (K, 6) coefficients (`_height`)
+    and (K,) RMS residuals. Least squares with the minimum norm, as `numpy.linalg.lstsq`."""
+    w = mask[..., None].astype(np.float64)
+    count = mask.sum(1)[:, None]
+    centre = (points * w).sum(1) / count
+    m = (normals * w).sum(1)
+    m /= np.linalg.norm(m, axis=1, keepdims=True)
+    other = np.where(np.abs(m[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(m, other)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    axes = np.stack([t1, np.cross(m, t1), m], 1)
+    u, v, h = np.moveaxis(np.einsum("kij,klj->kli", axes, points - centre[:, None]), 2, 0)
+    design = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], 2) * w
+    h = h * mask
+    coef = np.einsum("kij,kj->ki", np.linalg.pinv(design), h)
+    residual = np.einsum("klj,kj->kl", design, coef) - h
+    return centre, axes, coef, np.sqrt((residual ** 2).sum(1) / count[:, 0])
 
 
 def _height(coef, u, v):
