@@ -63,8 +63,8 @@ def match_planes(pa: Prepared, pb: Prepared, params: Params, be, scale: float, t
     if fit is None or rival < PLANE_RIVALS * score:
         return fit
     cut = _cut_name(pa.planes[ia][0], pb.planes[ib][0])
-    chosen = _plane_by_skin(pa, pb, [f for f in fits if f[0] >= PLANE_RIVALS * score], params, be, scale, spacing,
-                            timings)
+    chosen = _plane_by_skin(pa, pb, [f for f in fits if f[0] >= PLANE_RIVALS * score], fit, params, be, scale,
+                            spacing, timings)
     return chosen or replace(fit, accepted=False, score=0.0, reason=f"ambiguous: {cut} held {score:.2f} by the "
                              f"partner's and {rival:.2f} at another pose")
 
@@ -91,20 +91,23 @@ def _plane_fit(pa: Prepared, pb: Prepared, fit: tuple, params: Params, be, scale
     if not ver.accepted:
         return None
     return PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap, ver.penetration,
-                     np.zeros((0, 2), np.int64), -1, -1, f"accepted ({_cut_name(plane_a, plane_b)}: its rim and face "
-                     f"held {score:.2f} by the partner's, {rivals})", timings)
+                     np.zeros((0, 2), np.int64), -1, -1, _accepted(plane_a, plane_b, score, rivals), timings)
+
+
+def _accepted(plane_a, plane_b, score: float, rivals: str) -> str:
+    return f"accepted ({_cut_name(plane_a, plane_b)}: its rim and face held {score:.2f} by the partner's, {rivals})"
 
 
 def _cut_name(plane_a, plane_b) -> str:
     return "a flat cut" if plane_a.bend is None and plane_b.bend is None else "a curved cut"
 
 
-def _plane_by_skin(pa: Prepared, pb: Prepared, tied: list, params: Params, be, scale: float, spacing: float,
-                   timings: dict) -> PairMatch | None:
-    """Of plane fits held alike by their rims and faces (`tied`, best first), the one whose skin continues the
-    partner's most across the seam (`seam.skin_continuation`), where it continues by at least `Params.min_skin`,
-    every fit turned over SKIN_RIVAL_DEG from it continues less than SKIN_RIVALS (SKIN_RIVALS_ESTIMATED without
-    scanned normals) times as much, and it verifies; None otherwise."""
+def _plane_by_skin(pa: Prepared, pb: Prepared, tied: list, first: PairMatch, params: Params, be, scale: float,
+                   spacing: float, timings: dict) -> PairMatch | None:
+    """Of plane fits held alike by their rims and faces (`tied`, best first; `first`: the best one as `_plane_fit`
+    made it), the one whose skin continues the partner's most across the seam (`seam.skin_continuation`), where it
+    continues by at least `Params.min_skin`, every fit turned over SKIN_RIVAL_DEG from it continues less than
+    SKIN_RIVALS (SKIN_RIVALS_ESTIMATED without scanned normals) times as much, and it verifies; None otherwise."""
     if params.min_skin is None:
         return None
     contact = params.contact_distance * scale
@@ -116,9 +119,12 @@ def _plane_by_skin(pa: Prepared, pb: Prepared, tied: list, params: Params, be, s
         return None
     best, rival = won
     alike = max(s for k, (s, *_) in enumerate(tied) if k != best)
-    return _plane_fit(pa, pb, tied[best], params, be, scale, spacing, timings,
-                      f"{alike:.2f} at another pose; its skin continues the partner's {skins[best]:.2f} across the "
-                      f"seam, {rival:.2f} at another turn")
+    rivals = (f"{alike:.2f} at another pose; its skin continues the partner's {skins[best]:.2f} across the seam, "
+              f"{rival:.2f} at another turn")
+    if best == 0:  # the best fit, moved and verified already
+        score, _, (ia, ib) = tied[0]
+        return replace(first, reason=_accepted(pa.planes[ia][0], pb.planes[ib][0], score, rivals))
+    return _plane_fit(pa, pb, tied[best], params, be, scale, spacing, timings, rivals)
 
 
 def turned_to_skin(plane_a, sa, sb, transform: np.ndarray, contact: float, scale: float) -> np.ndarray:

@@ -89,13 +89,13 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
     rims = None if heads is not None or clouds else _rims(pa, pb, params, be, scale)
     result = _match_prepared(pa, pb, params, be, heads, scale, timings)
-    held = False  # a cloud fit polished on its skin already
     if clouds and heads is None:
         result = skin_continues(pa, pb, params, scale, result)
         if result.accepted:
             # a loose fit that its skin does not hold is refused here, and the other readings tried
             result = held_by_skin(pa, pb, params, be, scale, result)
-            held = result.accepted
+            if result.accepted:
+                return result  # a cloud has no second reading
     if heads is None and second_reading_params(params) is not None:
         first_rims = rims(result.transform) if result.accepted and rims is not None else None
         unsure = params.second_when_banded and result.accepted and result.reason.startswith(BANDED)
@@ -123,9 +123,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
             result = _match_majority(pa, pb, params, be, scale, timings, result)
         if not result.accepted:
             result = _match_thin(pa, pb, params, be, scale, timings, result)
-    if clouds and result.accepted and not held:
-        return held_by_skin(pa, pb, params, be, scale, result)
-    return result
+    return held_by_skin(pa, pb, params, be, scale, result) if clouds and result.accepted else result
 
 
 def _rims(pa: Prepared, pb: Prepared, params: Params, be, scale: float):

@@ -94,12 +94,13 @@ def _extensions(skin, skin_normals, points, point_normals, near: float, reach: f
     if len(close) == 0:
         return 0, []
     balls = tree.query_ball_point(skin[nearest[close]], reach)
-    width = max(len(b) for b in balls)
-    idx = np.zeros((len(close), width), np.int64)
-    mask = np.zeros((len(close), width), bool)
-    for row, ball in enumerate(balls):
-        idx[row, :len(ball)] = ball
-        mask[row, :len(ball)] = True
+    sizes = np.fromiter(map(len, balls), np.int64, len(balls))
+    rows = np.repeat(np.arange(len(balls)), sizes)
+    cols = np.arange(len(rows)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    idx = np.zeros((len(close), sizes.max()), np.int64)
+    mask = np.zeros(idx.shape, bool)
+    idx[rows, cols] = np.concatenate(balls)
+    mask[rows, cols] = True
     mask &= np.einsum("kjd,kd->kj", skin_normals[idx], point_normals[close]) > AGREE
     fitted = mask.sum(1) >= MIN_FIT
     close, idx, mask = close[fitted], idx[fitted], mask[fitted]
@@ -293,4 +294,3 @@ def skin_winner(skins, poses, min_skin: float, share: float, turn_deg: float) ->
     if skins[best] < min_skin or (turned and rival >= share * skins[best]):
         return None
     return best, rival
-
