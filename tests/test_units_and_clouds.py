@@ -615,6 +615,37 @@ def test_crease_regions_that_touch_widest_where_one_is_flat_decide_nothing():
     assert result.accepted and _pose_gap(result.transform, truth, b.vertices)[0] < 2.0, result.reason
 
 
+def test_a_board_s_crease_regions_fit_gives_way_to_its_boards_fit(monkeypatch):
+    """A bookshelf of boards 0.02 thick cut smooth (seed 4, with normals): two of its boards' narrow
+    faces, crease regions, laid on each other a quarter turn off, were accepted on their skin. Both
+    picks are thin walls' bands, so the fit of the boards' breaks framed by their boards is asked
+    first (`pipeline._boards_before_regions`), and it is right."""
+    from relicgpu.pair import pipeline
+
+    (a, b), truth, _ = _thin_cloud_pair("shelf02-smooth", 4, 37)
+    result = match_pair(a, b, backend="numpy")
+    assert "framed by their boards" in result.reason, result.reason
+    _assert_right(result, b, truth)
+    monkeypatch.setattr(pipeline, "_boards_before_regions", lambda *args: args[-1])
+    result = match_pair(a, b, backend="numpy")
+    assert "crease regions" in result.reason and _pose_gap(result.transform, truth, b.vertices)[0] > 45.0
+
+
+def test_a_board_s_fit_is_polished_on_its_skin_with_the_usual_gate_as_well(monkeypatch):
+    """A bookshelf of boards 0.02 thick cut smooth (seed 2, with normals): its one start that
+    verifies, polished on the skin across the seam with the gate widened, is slid 1.1% of the size
+    along its strips; polished with the usual gate it holds (`sheets.BOARD_GATES`)."""
+    from relicgpu.pair import sheets
+
+    (a, b), truth, _ = _thin_cloud_pair("shelf02-smooth", 2, 19)
+    result = match_pair(a, b, backend="numpy")
+    assert "framed by their boards" in result.reason, result.reason
+    _assert_right(result, b, truth)
+    monkeypatch.setattr(sheets, "BOARD_GATES", (sheets.THIN_WIDE_GATE,))
+    result = match_pair(a, b, backend="numpy")
+    assert result.accepted and _pose_gap(result.transform, truth, b.vertices)[1] > 0.01 * b.size
+
+
 def test_a_flat_cut_laid_face_to_face_faces_as_any_cloud_fit_does():
     """A clean flat cut through a solid (the corpus's voronoi-clean seed 11, 2,500 points a piece
     with normals): its planes' fit is right, but was refused for facing under the region fits' bar

@@ -185,9 +185,7 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
     then, with scanned normals, so with the break of a piece whose skin reads as rough as its break
     read off its creases (`sheets.crease_fit`): result kept where no fit passes."""
     t0 = time.perf_counter()
-    spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
-    skins = [cloud_skin(p.fragment, p.sample) for p in (pa, pb)]
-    thin = [thin_pick(skin, p.sample, spacing) for (skin, _), p in zip(skins, (pa, pb))]
+    spacing, skins, thin = _bands(pa, pb)
     found, index_of = None, index_cache(be)
     if all(thin):
         fits, index_of = _candidate_fits(pa, pb, params, be, None, scale, dict(timings))
@@ -204,6 +202,28 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
     (transform, ver, reason), timings = found, {**timings, "seam": time.perf_counter() - t0}
     return PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap,
                      ver.penetration, np.zeros((0, 2), np.int64), -1, -1, reason, timings)
+
+
+def _bands(pa: Prepared, pb: Prepared):
+    """The pair's point spacing (absolute), each cloud's `cloud_skin`, and whether each pick is a thin
+    wall's band (`cloudmatch.thin_pick`)."""
+    spacing = max(point_spacing(np.asarray(p.fragment.vertices, np.float64)) for p in (pa, pb))
+    skins = [cloud_skin(p.fragment, p.sample) for p in (pa, pb)]
+    return spacing, skins, [thin_pick(skin, p.sample, spacing) for (skin, _), p in zip(skins, (pa, pb))]
+
+
+def _boards_before_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
+                           fit: PairMatch) -> PairMatch:
+    """A crease regions' fit of two scanned clouds whose picks are both thin walls' bands gives way to
+    the thin paths' fit (`_match_thin`) where they find one: a board's narrow faces are crease regions
+    too, and laid on each other they pass at a quarter or half turn (bookshelves cut rough and smooth,
+    a Blender cube's thin shards; docs/benchmarks.md)."""
+    if not fit.accepted or any(getattr(p.fragment, "normals", None) is None for p in (pa, pb)):
+        return fit
+    if not all(_bands(pa, pb)[2]):
+        return fit
+    thin = _match_thin(pa, pb, params, be, scale, timings, replace(fit, accepted=False))
+    return thin if thin.accepted else fit
 
 
 def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
@@ -250,7 +270,7 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     if by_skin is None and len(loose) > len(accepted):
         by_skin = _by_skin(loose, params, be, scale, timings, rivals_share, LOOSE_OVERLAP, LOOSE_FACING)
     if by_skin is not None:
-        return by_skin
+        return _boards_before_regions(pa, pb, params, be, scale, timings, by_skin)
     if not accepted:
         return result
     overlap, transform, ver, sa, sb, *_ = accepted[0]
@@ -266,7 +286,7 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
     if rivals and rivals[0] >= AMBIGUOUS_SHARE * overlap:
         return replace(fit, accepted=False, score=0.0, reason="ambiguous: crease regions fit at two poses alike "
                        f"(overlap {overlap:.2f} and {rivals[0]:.2f})")
-    return fit
+    return _boards_before_regions(pa, pb, params, be, scale, timings, fit)
 
 
 def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict, rivals_share: float,

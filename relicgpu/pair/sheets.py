@@ -12,8 +12,11 @@ keeps the ones under which most of b's break lands on a's facing it and then mos
 runs on along a's (the same normal, a board continued), and `sheet_fit` takes the one whose
 skin beside the seam continues the partner's most among those that verify as a thin cut does
 (`cloudmatch.thin_wall_fit`'s checks), each as it is, polished point to plane on the break, and
-polished on the skin across the seam (`seam.seam_polish`: on some pairs it slides the true pose
-off its strips; on others it is what brings a start there).
+polished on the skin across the seam, its gate widened at first and not (`seam.seam_polish`: on
+some pairs it slides the true pose off its strips; on others it is what brings a start there; the
+widened gate draws some starts a percent along their strips, the usual one holds them; a pick
+read off creases, mostly not break, is polished with the widened gate alone: the usual one there
+let fits a degree or more off read their skin higher).
 
 A scanned piece whose skin reads as rough as its break (`points.bulk_reads_rough`: a plant's
 leaves and stem faceted at about a point spacing) picks no break by roughness; its break strip is
@@ -54,6 +57,11 @@ FACING = -0.5
 ALONG = 0.7
 CONTACT_SPACINGS = 1.5
 POLISH_ROUNDS = 20
+# Each start is polished on the skin across the seam with the gate widened (`seam.seam_polish`'s
+# wide_gate) and with the usual gate: bookshelves cut smooth and rough (seeds 0-11), the widened
+# gate alone left shelf02-smooth seed 2 slid 1.1% along its strips, where the usual one holds it
+# (`.dev/s48/cands2.py`; docs/benchmarks.md).
+BOARD_GATES = (THIN_WIDE_GATE, 0.0)
 # A scanned piece whose skin reads as rough as its break (a plant's faceted leaves and stem beside
 # a pot wall broken smooth) has its break strip read off its creases instead: the points whose
 # normal turns more than CREASE_COS (60 degrees) from at least CREASE_SHARE of their
@@ -159,11 +167,14 @@ def crease_sample(points: np.ndarray, normals: np.ndarray, sample: SurfaceSample
                                                            params.ppf_normal_radius * scale))
 
 
-def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, index_of, count: int = STARTS):
+def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, index_of, count: int = STARTS,
+              gates: tuple | None = None):
     """The fit of two boards' breaks from `sheet_starts` whose skin beside the seam continues the
     partner's most, among those (each start as it is, polished point to plane on the break, and
-    polished on the skin across the seam) that verify as `cloudmatch.thin_wall_fit`'s do:
-    (transform, Verification, reason) or None. Arguments as `thin_wall_fit`'s."""
+    polished on the skin across the seam with its gate widened as each of `gates` (default
+    BOARD_GATES) says) that verify as `cloudmatch.thin_wall_fit`'s do: (transform, Verification,
+    reason) or None. Arguments as `thin_wall_fit`'s."""
+    gates = BOARD_GATES if gates is None else gates
     a, b = samples
     contact = params.contact_distance * scale
     starts = sheet_starts(a, b, CONTACT_SPACINGS * spacing, count)
@@ -173,7 +184,7 @@ def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, ind
                                       2.0 * spacing, index_of(a.fracture), facing=(b.fracture_normals,
                                                                                    a.fracture_normals, FACING))
     polished = [seam.seam_polish(a.fracture, a.fracture_normals, b.fracture, *skins, s, contact, scale,
-                                 index_of(a.fracture), THIN_WIDE_GATE)[0] for s in starts]
+                                 index_of(a.fracture), wide)[0] for wide in gates for s in starts]
     best = None
     for transform in [*starts, *pointwise, *polished]:
         passed = thin_cut_check(a, b, transform, spacing, params, scale, backend, index_of)
@@ -207,5 +218,5 @@ def crease_fit(points, normals, skins, samples, spacing: float, params, scale: f
     samples[i] = crease_sample(points[i], normals[i], samples[i], params, scale)
     if not thin_pick(skins[i][0], samples[i], spacing):
         return None
-    found = sheet_fit(skins, samples, spacing, params, scale, backend, index_of, CREASE_STARTS)
+    found = sheet_fit(skins, samples, spacing, params, scale, backend, index_of, CREASE_STARTS, (THIN_WIDE_GATE,))
     return None if found is None else (*found[:2], f"{found[2]} ({'ab'[i]}'s break read off its creases)")
