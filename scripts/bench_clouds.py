@@ -20,7 +20,7 @@ cylinder, third-party: fractures this project did not make). --kinds keeps some 
 kinds (pair k is then kinds[k % len] of seed k // len). Each piece becomes --points points drawn
 from its surface (seed 100 k + i) with Gaussian noise of --noise times the piece's size, with the
 true normals (`normals`), with none (`none`), or as the mesh itself with three holes cut into its
-skin (`open`). A pair is right when `match_pair` accepts it with a rotation error under 2 degrees and
+skin (`open`), or as the closed mesh itself (`mesh`). A pair is right when `match_pair` accepts it with a rotation error under 2 degrees and
 the moved piece's points within 1% RMS of their true place, lengths relative to the object's
 size (the largest side of its assembled bounding box). A pair accepted at a wrong pose is
 counted apart: it is worse than a miss. The summary gives each mode's counts over all pairs and
@@ -88,6 +88,9 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
     frags = []
     for i, f in zip(pieces, [r.fragments[p] for p in pieces]):
         m = f.to_trimesh()
+        if mode == "mesh":
+            frags.append(f)
+            continue
         if mode == "open":
             frags.append(_cut_holes(f, r.fracture_faces[i], np.random.default_rng(100 * k + i)))
             continue
@@ -167,7 +170,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=int, default=10)
     ap.add_argument("--first", type=int, default=0, help="index of the first pair")
-    ap.add_argument("--modes", default="normals,none", help="comma list of normals, none, open")
+    ap.add_argument("--modes", default="normals,none", help="comma list of normals, none, open, mesh")
     ap.add_argument("--points", type=int, default=2500)
     ap.add_argument("--noise", type=float, default=0.0005)
     ap.add_argument("--source", choices=["synth", "corpus", "thin", "realdata"], default="synth")

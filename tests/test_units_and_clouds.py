@@ -243,9 +243,10 @@ def test_crease_regions_split_a_cloud_at_its_creases_with_and_without_normals():
             assert len(region) > (0.9 if given is not None else 0.6) * np.sum(truth == labels.argmax())
 
 
-def _corpus_cloud_pair(family, seed, pair, with_normals=True):
+def _corpus_cloud_pair(family, seed, pair, with_normals=True, noise=0.0005):
     """A clean two-piece object of the independent corpus (not relicgpu.synth) as sparse clouds,
-    drawn as scripts/bench_clouds.py draws its pair `pair`, and the transform carrying b onto a."""
+    drawn as scripts/bench_clouds.py draws its pair `pair` (noise a share of the size), and the
+    transform carrying b onto a."""
     import trimesh
 
     from relicgpu.synth import corpus
@@ -256,7 +257,7 @@ def _corpus_cloud_pair(family, seed, pair, with_normals=True):
     for i, f in enumerate(r.fragments):
         mesh = f.to_trimesh()
         p, face = trimesh.sample.sample_surface(mesh, 2500, seed=100 * pair + i)
-        p = p + np.random.default_rng(7 * pair + i).normal(size=p.shape) * 0.0005 * f.size
+        p = p + np.random.default_rng(7 * pair + i).normal(size=p.shape) * noise * f.size
         frags.append(cloud_fragment(f.name, p, mesh.face_normals[face] if with_normals else None))
     return frags, np.linalg.inv(r.poses[0]) @ r.poses[1]
 
@@ -277,6 +278,28 @@ def test_a_smooth_cut_whose_regions_hold_skin_is_matched_on_its_skin(seed, pair,
     frags, truth = _corpus_cloud_pair("smooth-clean", seed, pair, with_normals)
     result = match_pair(*frags, backend="numpy")
     assert "touching over" in result.reason and "its skin continues" in result.reason, result.reason
+    _assert_right(result, frags[1], truth)
+
+
+def test_a_cloud_sampled_without_noise_reads_a_roughness_floor():
+    """Points drawn off an exact plane read no roughness of their own; every residual bound read
+    off it would be 0 (`cloudmatch.ROUGHNESS_FLOOR`). A noisy plane reads its noise."""
+    from relicgpu.pair.cloudmatch import ROUGHNESS_FLOOR, point_spacing, roughness
+
+    rng = np.random.default_rng(1)
+    plane = np.c_[rng.uniform(0, 1, (800, 2)), np.zeros(800)]
+    assert roughness(plane) == pytest.approx(ROUGHNESS_FLOOR * point_spacing(plane))
+    noisy = plane + np.c_[np.zeros((800, 2)), 0.01 * rng.normal(size=800)]
+    assert roughness(noisy) > 2 * ROUGHNESS_FLOOR * point_spacing(noisy)
+
+
+def test_a_flat_cut_sampled_without_noise_is_matched():
+    """A Voronoi cut's clouds without normals drawn off the exact surface (no scanner noise): its
+    planes read roughness 0 and their fits' residual bound with it, and the right fit was refused
+    (before `cloudmatch.ROUGHNESS_FLOOR`: none accepted, overlap 0.01)."""
+    frags, truth = _corpus_cloud_pair("voronoi-clean", 0, 2, with_normals=False, noise=0.0)
+    result = match_pair(*frags, backend="numpy")
+    assert result.reason.startswith("accepted (a flat cut"), result.reason
     _assert_right(result, frags[1], truth)
 
 
@@ -559,9 +582,10 @@ def test_a_faceted_skin_sampled_with_face_normals_still_shows_its_break(monkeypa
     assert (picked() & truth).sum() < 0.1 * truth.sum()
 
 
-def _thin_cloud_pair(family, seed, k):
+def _thin_cloud_pair(family, seed, k, noise=0.0005):
     """bench_clouds' pair k: the two halves of `relicgpu.synth.thin` family seed as 2,500 points
-    each with their face normals, the truth carrying b onto a, and each point's fracture label."""
+    each with their face normals (noise a share of the size), the truth carrying b onto a, and
+    each point's fracture label."""
     import trimesh
 
     from relicgpu.cloud.points import cloud_fragment
@@ -572,7 +596,7 @@ def _thin_cloud_pair(family, seed, k):
     for i, f in enumerate(r.fragments):
         mesh = f.to_trimesh()
         p, face = trimesh.sample.sample_surface(mesh, 2500, seed=100 * k + i)
-        p = p + np.random.default_rng(7 * k + i).normal(size=p.shape) * 0.0005 * f.size
+        p = p + np.random.default_rng(7 * k + i).normal(size=p.shape) * noise * f.size
         clouds.append(cloud_fragment(f.name, p, mesh.face_normals[face]))
         labels.append(np.asarray(r.fracture_faces[i])[face])
     return clouds, np.linalg.inv(r.poses[0]) @ r.poses[1], labels
@@ -629,6 +653,16 @@ def test_a_board_s_crease_regions_fit_gives_way_to_its_boards_fit(monkeypatch):
     monkeypatch.setattr(pipeline, "_boards_before_regions", lambda *args: args[-1])
     result = match_pair(a, b, backend="numpy")
     assert "crease regions" in result.reason and _pose_gap(result.transform, truth, b.vertices)[0] > 45.0
+
+
+def test_a_board_sampled_without_noise_is_held_by_its_skin():
+    """A bookshelf's board cut flat, drawn off the exact surface: its skin's quadrics fit to 1e-17
+    and gated by that, no partner's skin point held the right fit, which was refused as unsettled
+    ("held at 1 points"; `seam.FIT_FLOOR`)."""
+    (a, b), truth, _ = _thin_cloud_pair("shelf04-flat", 2, 21, noise=0.0)
+    result = match_pair(a, b, backend="numpy")
+    assert "the skin across the seam held it" in result.reason, result.reason
+    _assert_right(result, b, truth)
 
 
 def test_a_board_s_fit_is_polished_on_its_skin_with_the_usual_gate_as_well(monkeypatch):

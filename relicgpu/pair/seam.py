@@ -40,6 +40,11 @@ AGREE = 0.8
 MIN_FIT = 10
 MAX_FIT = 0.002
 GATE = 4.0
+# ... however tightly the quadric fits, its residual reads at least FIT_FLOOR (of the scale) in
+# `seam_polish`'s gate: a cloud sampled off an exact surface fits its skin's quadrics to 1e-17,
+# and gated so, no partner's skin point held a right fit (a bookshelf's board without noise:
+# held by 1 point, refused as unsettled)
+FIT_FLOOR = 1e-4
 # The weakest direction of the break's own normal equations, as a share of the strongest, under
 # which the fit is loose: slabs 0.002-0.011, vases and torsos 0.03-0.12 (one turned vase 0.009).
 LOOSE = 0.02
@@ -202,7 +207,7 @@ def seam_polish(fracture_a: np.ndarray, fracture_normals_a: np.ndarray, fracture
     transform = np.array(transform, np.float64)
     held = 0
     for r in range(ROUNDS):
-        floor = wide_gate * cutoff * 0.5 ** r
+        floor = max(wide_gate * cutoff * 0.5 ** r, GATE * FIT_FLOOR * scale)
         moved_skin = apply(transform, skin_b[0]), skin_b[1] @ transform[:3, :3].T
         # a's skin extended to b's points (frame a), and b's to a's (frame b)
         on_a = seam_surfaces(*skin_a, *moved_skin, NEAR * scale, REACH * scale, MAX_FIT * scale, floor)
