@@ -310,9 +310,9 @@ ROUGHNESS_FIT = 8
 # A cloud sampled off an exact surface, without a scanner's noise, reads a flat or smooth break as
 # roughness 0, and every residual bound read off it as 0: a right fit's residual is never 0 (two
 # samplings, a fit a fraction of a degree off). No roughness reads under this share of the point
-# spacing, about what a scan with noise of 0.03% of its size reads (2,500 points a piece: corpus
-# clouds with noise 0.05% read 0.037-0.046 spacings). Without it, the corpus's clouds without normals
-# and without noise were right 17 of 48 against 26 with noise (docs/benchmarks.md).
+# spacing, under what noise of 0.05% of the size reads (the cut planes of a Voronoi corpus pair of
+# 2,500 points a piece: 0.039-0.046 spacings). Without it, the corpus's clouds without normals and
+# without noise were right 17 of 48 against 26 with noise (docs/benchmarks.md).
 ROUGHNESS_FLOOR = 0.025
 # Where two clouds' surfaces touch after a fit, at least this share of the touching points must
 # face each other (`verify.facing_share`, normals oriented by visibility). Measured on 24
