@@ -19,12 +19,12 @@ order) of the ../shared/realdata Blender set [k % 2] (cell-fracture shards of a 
 cylinder, third-party: fractures this project did not make). --kinds keeps some of the source's
 kinds (pair k is then kinds[k % len] of seed k // len). Each piece becomes --points points drawn
 from its surface (seed 100 k + i) with Gaussian noise of --noise times the piece's size, with the
-true normals (`normals`), with none (`none`), or as the mesh itself with three holes cut into its
-skin (`open`), or as the closed mesh itself (`mesh`). A pair is right when `match_pair` accepts it with a rotation error under 2 degrees and
-the moved piece's points within 1% RMS of their true place, lengths relative to the object's
-size (the largest side of its assembled bounding box). A pair accepted at a wrong pose is
-counted apart: it is worse than a miss. The summary gives each mode's counts over all pairs and
-per shape (synth), family (corpus, thin) or set (realdata).
+true normals (`normals`), with none (`none`), as the mesh itself with three holes cut into its skin
+(`open`), or as the closed mesh itself (`mesh`). A pair is right when `match_pair` accepts it with a
+rotation error under 2 degrees and the moved piece's points within 1% RMS of their true place,
+lengths relative to the object's size (the largest side of its assembled bounding box). A pair
+accepted at a wrong pose is counted apart: it is worse than a miss. The summary gives each mode's
+counts over all pairs and per shape (synth), family (corpus, thin) or set (realdata).
 """
 from __future__ import annotations
 
