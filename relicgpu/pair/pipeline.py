@@ -179,13 +179,14 @@ def _match_majority(pa: Prepared, pb: Prepared, params: Params, be, scale: float
 
 
 def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
-                result: PairMatch) -> PairMatch:
+                result: PairMatch, bands: tuple | None = None) -> PairMatch:
     """Two clouds whose picks are thin walls' bands (`cloudmatch.thin_pick`) matched on them as a thin
     cut is (`cloudmatch.thin_wall_fit`), then from starts framed by their boards (`sheets.sheet_fit`),
     then, with scanned normals, so with the break of a piece whose skin reads as rough as its break
-    read off its creases (`sheets.crease_fit`): result kept where no fit passes."""
+    read off its creases (`sheets.crease_fit`): result kept where no fit passes. bands: `_bands` of
+    the pair where the caller has it."""
     t0 = time.perf_counter()
-    spacing, skins, thin = _bands(pa, pb)
+    spacing, skins, thin = bands or _bands(pa, pb)
     found, index_of = None, index_cache(be)
     if all(thin):
         fits, index_of = _candidate_fits(pa, pb, params, be, None, scale, dict(timings))
@@ -220,9 +221,10 @@ def _boards_before_regions(pa: Prepared, pb: Prepared, params: Params, be, scale
     a Blender cube's thin shards; docs/benchmarks.md)."""
     if not fit.accepted or any(getattr(p.fragment, "normals", None) is None for p in (pa, pb)):
         return fit
-    if not all(_bands(pa, pb)[2]):
+    bands = _bands(pa, pb)
+    if not all(bands[2]):
         return fit
-    thin = _match_thin(pa, pb, params, be, scale, timings, replace(fit, accepted=False))
+    thin = _match_thin(pa, pb, params, be, scale, timings, replace(fit, accepted=False), bands)
     return thin if thin.accepted else fit
 
 
