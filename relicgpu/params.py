@@ -151,6 +151,13 @@ class Params:
     # surface (`seam.skin_points`): a break through a wall leaves both skins running on across the
     # seam; a wall laid along a wall, or turned across it, leaves them beside the partner's (None: never)
     wall_skin: float | None = 0.15
+    # any mesh fit is refused where, of at least `meshfit.WALL_SKIN_NEAR` points of the reading's
+    # skin free beside its seam (`seam.skin_points(skin_only=True)`), under seam_skin continue the
+    # partner's surface: a flat break laid on its partner turned or slid leaves its skin beside the
+    # partner's (clean Voronoi pieces' wrong fits 0.00-0.02, right ones 0.12 and up). The reading's
+    # skin only: at the right fit of an inner piece or of a shard, the other breaks beside the seam
+    # continue nothing (Blender shards' right fits 0.01-0.4 over all points) (None: never)
+    seam_skin: float | None = 0.05
     # a fit of two pieces whose skins each turn firmly about an axis (`revolution`: thin walls, and
     # thicker pieces that are plainly surfaces of revolution) is refused where it carries one axis
     # more than `revolution.AXIS_DEG` or axis_apart (of the scale) off the other: a wheel-made

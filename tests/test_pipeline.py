@@ -145,9 +145,9 @@ def test_a_wrong_fit_of_a_thin_wall_is_refused_for_not_facing():
     a, b = r.fragments
     truth = np.linalg.inv(r.poses[0]) @ r.poses[1]
     # (without the near-flat facets too, whose fit of this pair is the right one and comes first,
-    # and the thin walls' checks, skin and axes, each of which refuses this fit on its own since
-    # the wall is read on the sides)
-    old = Params(min_facing=0.0, max_surface_penetration=1.0, grown_outline=0.0, wall_skin=None,
+    # the thin walls' checks, skin and axes, and the seam's skin, any of which may refuse this fit
+    # on its own since the wall is read on the sides)
+    old = Params(min_facing=0.0, max_surface_penetration=1.0, grown_outline=0.0, wall_skin=None, seam_skin=None,
                  axis_apart=None)
     before = match_pair(a, b, old, backend="numpy")
     assert before.accepted
@@ -238,8 +238,8 @@ def test_a_thin_wall_whose_skins_lie_beside_the_partners_is_refused():
     scale = common_scale(r.fragments, Params())
     a, b = r.fragments[4], r.fragments[7]
     truth = np.linalg.inv(r.poses[4]) @ r.poses[7]
-    # (the walls' axes refuse it too, `test_revolution`: both rules off)
-    off = match_pair(a, b, Params(wall_skin=None, axis_apart=None), backend="numpy", scale=scale)
+    # (the walls' axes refuse it too, `test_revolution`, and the seam's skin: those rules off)
+    off = match_pair(a, b, Params(wall_skin=None, seam_skin=None, axis_apart=None), backend="numpy", scale=scale)
     assert off.accepted and _pose_error(off, a, b, truth)[0] > 90  # the case the rule is for
 
     assert not match_pair(a, b, backend="numpy", scale=scale).accepted
@@ -250,6 +250,40 @@ def test_a_thin_wall_whose_skins_lie_beside_the_partners_is_refused():
     ver = verify_mesh(pa.sample, pb.sample, off.transform, be, Params(axis_apart=None), scale, index_cache(be),
                       Params().max_rmse)
     assert not ver.accepted and "thin wall" in ver.reason
+
+
+def test_a_flat_breaks_fit_whose_skin_does_not_continue_the_partners_is_refused():
+    """Two touching pieces of a clean Voronoi object of another generator (relicgpu.synth.corpus,
+    voronoi-clean, 5 pieces, seed 1, pieces 0 and 4). Without Params.seam_skin a fit 50 degrees
+    off passes every check: a flat break laid on its partner's turned and slid, the skin beside
+    its seam lying by the partner's without running on into it (1 of 64 points). It is refused,
+    and no fit at a wrong pose is taken. The skin counted is the reading's: an inner piece's other
+    breaks beside the seam run on into nothing at its right fit either."""
+    from relicgpu.backends import resolve
+    from relicgpu.heap.assembly import common_scale
+    from relicgpu.pair import seam
+    from relicgpu.pair.meshfit import WALL_SKIN_NEAR
+    from relicgpu.pair.prepare import prepare
+    from relicgpu.params import Params
+    from relicgpu.synth import corpus
+
+    r = corpus.generate("voronoi-clean", pieces=5, seed=1, faces=3000)
+    scale = common_scale(r.fragments, Params())
+    a, b = r.fragments[0], r.fragments[4]
+    truth = np.linalg.inv(r.poses[0]) @ r.poses[4]
+    off = match_pair(a, b, Params(seam_skin=None), backend="numpy", scale=scale)
+    assert off.accepted and _pose_error(off, a, b, truth)[0] > 10  # the case the rule is for
+
+    pa, pb = (prepare(f, Params(), resolve("numpy"), scale=scale) for f in (a, b))
+    contact = Params().contact_distance * scale
+    continues, near = seam.skin_points(pa.sample, pb.sample, off.transform, contact, scale, skin_only=True)
+    assert near >= WALL_SKIN_NEAR and continues < Params().seam_skin * near
+    right, right_near = seam.skin_points(pa.sample, pb.sample, truth, contact, scale, skin_only=True)
+    assert right >= 3 * Params().seam_skin * right_near  # the true pose's skin runs on
+
+    on = match_pair(pa, pb, backend="numpy", scale=scale)
+    assert not on.accepted or _pose_error(on, a, b, truth)[0] < 2.0
+    assert on.accepted or "skin beside the seam" in on.reason, on.reason
 
 
 def test_face_points_fill_long_faces_only():

@@ -156,10 +156,11 @@ def test_a_half_turn_whose_outline_agrees_but_whose_skin_does_not_continue_is_re
     """A flat rescanned break turned half a turn keeps its nearly symmetric outline but lays its
     sides across the partner's: the skin beside the seam does not continue (corpus voronoi-noisy
     seed 1, outlines agree 0.67, skin 0.02). With the fine stage on all pairs (`Params.fine_facing`
-    None): accepted on its outline where the skin is not asked (`Params.outline_skin` None), refused
-    where it is. On the facing pairs the fine stage finds the right fit, accepted on its skin."""
+    None): accepted on its outline where the skin is not asked (`Params.outline_skin` and
+    `Params.seam_skin` None), refused where it is. On the facing pairs the fine stage finds the
+    right fit, accepted on its skin."""
     (a, b), truth = corpus_pair("voronoi-noisy", 1)
-    unasked = pl.match_pair(a, b, Params(outline_skin=None, fine_facing=None), "numpy")
+    unasked = pl.match_pair(a, b, Params(outline_skin=None, seam_skin=None, fine_facing=None), "numpy")
     assert unasked.accepted and unasked.reason.startswith("accepted on its outline"), unasked.reason
     assert rotation_angle_deg(unasked.transform[:3, :3] @ truth[:3, :3].T) > 90.0
     m = pl.match_pair(a, b, Params(fine_facing=None), "numpy")

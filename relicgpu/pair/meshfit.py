@@ -36,20 +36,28 @@ SKIN_OVER = 2.0
 
 def verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, max_rmse: float):
     """`verify` of a mesh pair's fit with `params`' checks, the residual bound `max_rmse` (of the
-    scale), `axis_apart`'s, and for two thin walls `wall_skin`'s."""
+    scale), `axis_apart`'s, `seam_skin`'s, and for two thin walls `wall_skin`'s."""
     ver = verify(a, b, transform, be, params.contact_distance * scale, max_rmse * scale, params.min_overlap,
                  params.penetration_depth * scale, params.max_penetration, index_of, min_facing=params.min_facing,
                  max_surface_penetration=params.max_surface_penetration)
     apart = ver.accepted and axes_meet(a.axis, b.axis, transform, scale, params.axis_apart)
     if apart:
         return replace(ver, accepted=False, reason=apart)
-    if (not ver.accepted or params.wall_skin is None or max(a.wall, b.wall) >= params.region_thin_wall
-            or ver.overlap >= WALL_SKIN_WHOLE):
+    if not ver.accepted:
         return ver
-    continues, near = seam.skin_points(a, b, transform, params.contact_distance * scale, scale)
-    if near >= WALL_SKIN_NEAR and continues < params.wall_skin * near:
-        return replace(ver, accepted=False, reason=f"the skin beside a thin wall's seam does not continue the "
-                                                   f"partner's ({continues} of {near} points near it)")
+    contact = params.contact_distance * scale
+    if (params.wall_skin is not None and max(a.wall, b.wall) < params.region_thin_wall
+            and ver.overlap < WALL_SKIN_WHOLE):
+        continues, near = seam.skin_points(a, b, transform, contact, scale)
+        if near >= WALL_SKIN_NEAR and continues < params.wall_skin * near:
+            return replace(ver, accepted=False, reason=f"the skin beside a thin wall's seam does not continue the "
+                                                       f"partner's ({continues} of {near} points near it)")
+    if params.seam_skin is not None:
+        # the reading's skin only: an inner piece's other breaks beside the seam run on into nothing
+        continues, near = seam.skin_points(a, b, transform, contact, scale, skin_only=True)
+        if near >= WALL_SKIN_NEAR and continues < params.seam_skin * near:
+            return replace(ver, accepted=False, reason=f"the skin beside the seam does not continue the partner's "
+                                                       f"({continues} of {near} points near it)")
     return ver
 
 

@@ -175,7 +175,7 @@ def _surface_sample(fragment: Fragment, seg, prob: np.ndarray, n_points: int, pl
     sharp = seg.topology.edge_vertices[seg.edge_angle > crease_angle]
     creases = crease_points(v, sharp, sample_spacing(v[surf]), 2 * n_points)
     sample = SurfaceSample(v[frac], vertex_region[frac], normals[frac], v[surf], normals[surf], plane_normals,
-                           fracture_weight=vertex_weight[frac], creases=creases)
+                           fracture_weight=vertex_weight[frac], creases=creases, surface_weight=vertex_weight[surf])
     inner, face = face_points(v, f, step) if step > 0 else (np.zeros((0, 3)), np.zeros(0, np.int64))
     inner, face = (x[np.linalg.norm(seg.normals[face], axis=1) > 0.5] for x in (inner, face))  # a sliver has none
     if not len(inner):

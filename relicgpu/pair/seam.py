@@ -274,18 +274,27 @@ def skin_continuation(a, b, transform: np.ndarray, contact: float, scale: float)
     return continues / near if near else 0.0
 
 
-def skin_points(a, b, transform: np.ndarray, contact: float, scale: float) -> tuple[int, int]:
+def skin_points(a, b, transform: np.ndarray, contact: float, scale: float, skin_only: bool = False) -> tuple[int, int]:
     """`skin_continuation`'s counts: the free points that continue the partner's surface, and
-    those near it."""
+    those near it; with `skin_only`, of the points the reading takes for skin (`surface_weight` 0)."""
     moved, moved_normals = apply(transform, b.surface), b.normals @ transform[:3, :3].T
-    free_a = free_surface(a.surface, a.normals, moved, contact)
-    free_b = free_surface(moved, moved_normals, a.surface, contact)
+    keep_a, keep_b = (_skin(s) if skin_only else slice(None) for s in (a, b))
+    free_a = free_surface(a.surface[keep_a], a.normals[keep_a], moved, contact)
+    free_b = free_surface(moved[keep_b], moved_normals[keep_b], a.surface, contact)
     near = continues = 0
     for skin, others in ((free_a, free_b), (free_b, free_a)):
         count, found = _extensions(*skin, *others, NEAR * scale, REACH * scale)
         near += count
         continues += int(sum(off < CONTINUES * scale for *_, off in found))
     return continues, near
+
+
+def _skin(sample) -> np.ndarray | slice:
+    """Which of a sample's surface points its reading takes for skin: all where it says nothing
+    (clouds), or where it takes none (a piece it reads as all break, or matched whole as it reads
+    next to none: `prepare.sampling_prob`)."""
+    skin = None if sample.surface_weight is None else sample.surface_weight <= 0
+    return skin if skin is not None and skin.any() else slice(None)
 
 
 def skin_winner(skins, poses, min_skin: float, share: float, turn_deg: float) -> tuple[int, float] | None:

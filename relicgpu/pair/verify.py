@@ -50,6 +50,7 @@ class SurfaceSample:
     # (Q',3) points and normals on which another surface's points near it read their side of this
     # one (`surface_penetration`): a coarse mesh's vertices and points inside its large faces; None: `surface`
     sides: tuple[np.ndarray, np.ndarray] | None = None
+    surface_weight: np.ndarray | None = None  # (Q,) fracture likelihood at `surface` (meshes); None: clouds
 
     def weights(self) -> np.ndarray:
         """(P,) weight of each fracture point: `fracture_weight`, or 1 where none was given (clouds)."""
