@@ -48,17 +48,25 @@ def verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, i
     contact = params.contact_distance * scale
     if (params.wall_skin is not None and max(a.wall, b.wall) < params.region_thin_wall
             and ver.overlap < WALL_SKIN_WHOLE):
-        continues, near = seam.skin_points(a, b, transform, contact, scale)
-        if near >= WALL_SKIN_NEAR and continues < params.wall_skin * near:
-            return replace(ver, accepted=False, reason=f"the skin beside a thin wall's seam does not continue the "
-                                                       f"partner's ({continues} of {near} points near it)")
+        refused = _skin_refusal(a, b, transform, contact, scale, params.wall_skin, False, "a thin wall's seam")
+        if refused:
+            return replace(ver, accepted=False, reason=refused)
     if params.seam_skin is not None:
         # the reading's skin only: an inner piece's other breaks beside the seam run on into nothing
-        continues, near = seam.skin_points(a, b, transform, contact, scale, skin_only=True)
-        if near >= WALL_SKIN_NEAR and continues < params.seam_skin * near:
-            return replace(ver, accepted=False, reason=f"the skin beside the seam does not continue the partner's "
-                                                       f"({continues} of {near} points near it)")
+        refused = _skin_refusal(a, b, transform, contact, scale, params.seam_skin, True, "the seam")
+        if refused:
+            return replace(ver, accepted=False, reason=refused)
     return ver
+
+
+def _skin_refusal(a, b, transform: np.ndarray, contact: float, scale: float, share: float, skin_only: bool,
+                  where: str) -> str | None:
+    """The reason a fit is refused where at least WALL_SKIN_NEAR free points beside its seam lie
+    near the partner's surface and under `share` of them continue it (`seam.skin_points`), else None."""
+    continues, near = seam.skin_points(a, b, transform, contact, scale, skin_only=skin_only)
+    if near >= WALL_SKIN_NEAR and continues < share * near:
+        return f"the skin beside {where} does not continue the partner's ({continues} of {near} points near it)"
+    return None
 
 
 def outline_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, failed):
