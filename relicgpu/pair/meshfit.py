@@ -2,7 +2,8 @@
 band where a rescanned break's outline or skin speaks for it (`outline_fit`); a thin wall's fit
 that faces too little, taken where its rims meet the partner's creases (`rims_fit`); `band_fit`
 asks the one that a refused fit's reason calls for. `skin_pick` chooses among fits that pass alike,
-`skin_over_band` between the one chosen and those passing in the band on their skin."""
+`skin_over_band` between the one chosen and those passing in the band on their skin; `unseen_skin`
+asks a second reading's fit for skin that continues across its seam as the first reading sees it."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -51,12 +52,31 @@ def verify_mesh(a, b, transform: np.ndarray, be, params: Params, scale: float, i
         refused = _skin_refusal(a, b, transform, contact, scale, params.wall_skin, False, "a thin wall's seam")
         if refused:
             return replace(ver, accepted=False, reason=refused)
-    if params.seam_skin is not None:
-        # the reading's skin only: an inner piece's other breaks beside the seam run on into nothing
-        refused = _skin_refusal(a, b, transform, contact, scale, params.seam_skin, True, "the seam")
-        if refused:
-            return replace(ver, accepted=False, reason=refused)
-    return ver
+    refused = _seam_refusal(a, b, transform, params, scale)
+    return replace(ver, accepted=False, reason=refused) if refused else ver
+
+
+def _seam_refusal(a, b, transform: np.ndarray, params: Params, scale: float) -> str | None:
+    """Why a fit is refused on the skin beside its seam (`Params.seam_skin`; the skin as the
+    samples' reading takes it: an inner piece's other breaks beside the seam run on into
+    nothing), or None."""
+    if params.seam_skin is None:
+        return None
+    return _skin_refusal(a, b, transform, params.contact_distance * scale, scale, params.seam_skin, True, "the seam")
+
+
+def unseen_skin(a, b, transform: np.ndarray, params: Params, scale: float) -> str | None:
+    """Why a fit is refused where neither the skin as the samples' reading takes it nor all the
+    free surface beside its seam continues the partner's (each under `Params.seam_skin`), or None.
+    Asked of a fit of the second reading with the first reading's samples: the second takes most
+    of a rescanned piece for break, so that its own skin rule sees no skin beside a seam; the
+    first misreads breaks as skin, which the free surface as a whole corrects."""
+    skin = _seam_refusal(a, b, transform, params, scale)
+    if skin is None:
+        return None
+    free = _skin_refusal(a, b, transform, params.contact_distance * scale, scale, params.seam_skin, False,
+                         "the seam")
+    return None if free is None else f"{skin}, nor does its free surface ({free.rsplit('(', 1)[1]}"
 
 
 def _skin_refusal(a, b, transform: np.ndarray, contact: float, scale: float, share: float, skin_only: bool,

@@ -27,7 +27,7 @@ from .ppf import vote_poses
 from .result import PairMatch
 from . import seam
 from .fine import fine_stage
-from .meshfit import BANDED, band_fit, skin_over_band, skin_pick, verify_mesh
+from .meshfit import BANDED, band_fit, skin_over_band, skin_pick, unseen_skin, verify_mesh
 from .sheets import crease_fit, sheet_fit
 from .skinhold import held_by_skin, skin_continues
 from .verify import index_cache, rim_agreement
@@ -111,10 +111,15 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
                 second_rims = rims(second.transform)
             if second is not None and second.accepted and (
                     not result.accepted or (second_rims is not None and second_rims > first_rims)):
+                refused = unseen_skin(pa.sample, pb.sample, second.transform, params, scale)
                 why = "" if not result.accepted else (
                     f"; its rims agree {second_rims:.2f}, the first reading's fit {first_rims:.2f}")
-                return replace(second, score=SECOND_READING_SCORE * second.score,
-                               reason=f"{second.reason} ({params.second_segmentation} segmentation{why})")
+                if refused is None:
+                    return replace(second, score=SECOND_READING_SCORE * second.score,
+                                   reason=f"{second.reason} ({params.second_segmentation} segmentation{why})")
+                if not result.accepted:
+                    result = replace(result, reason=f"{result.reason}; the {params.second_segmentation} reading's "
+                                                    f"fit: {refused}")
     if not (result.accepted or heads is not None or pa.strict_sample is None or pb.strict_sample is None):
         result = skin_continues(pa, pb, params, scale, _match_strict(pa, pb, params, be, scale, timings, result))
         if not result.accepted:
