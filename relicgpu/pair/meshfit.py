@@ -74,19 +74,25 @@ def unseen_skin(a, b, transform: np.ndarray, params: Params, scale: float) -> st
     skin = _seam_refusal(a, b, transform, params, scale)
     if skin is None:
         return None
-    free = _skin_refusal(a, b, transform, params.contact_distance * scale, scale, params.seam_skin, False,
-                         "the seam")
-    return None if free is None else f"{skin}, nor does its free surface ({free.rsplit('(', 1)[1]}"
+    free = _skin_shortfall(a, b, transform, params.contact_distance * scale, scale, params.seam_skin, False)
+    return None if free is None else f"{skin}, nor does its free surface ({free[0]} of {free[1]} points near it)"
 
 
 def _skin_refusal(a, b, transform: np.ndarray, contact: float, scale: float, share: float, skin_only: bool,
                   where: str) -> str | None:
-    """The reason a fit is refused where at least WALL_SKIN_NEAR free points beside its seam lie
-    near the partner's surface and under `share` of them continue it (`seam.skin_points`), else None."""
+    """The reason a fit is refused where `_skin_shortfall` says so, else None."""
+    short = _skin_shortfall(a, b, transform, contact, scale, share, skin_only)
+    if short is None:
+        return None
+    return f"the skin beside {where} does not continue the partner's ({short[0]} of {short[1]} points near it)"
+
+
+def _skin_shortfall(a, b, transform: np.ndarray, contact: float, scale: float, share: float,
+                    skin_only: bool) -> tuple[int, int] | None:
+    """(continuing, near) where at least WALL_SKIN_NEAR free points beside a fit's seam lie near the
+    partner's surface and under `share` of them continue it (`seam.skin_points`), else None."""
     continues, near = seam.skin_points(a, b, transform, contact, scale, skin_only=skin_only)
-    if near >= WALL_SKIN_NEAR and continues < share * near:
-        return f"the skin beside {where} does not continue the partner's ({continues} of {near} points near it)"
-    return None
+    return (continues, near) if near >= WALL_SKIN_NEAR and continues < share * near else None
 
 
 def outline_fit(a, b, transform: np.ndarray, be, params: Params, scale: float, index_of, failed):
