@@ -11,6 +11,7 @@ from ..backends import numpy as numpy_backend
 from ..pair.icp import apply, invert, kabsch
 from ..pair.verify import index_cache, rim_agreement
 from ..params import Params
+from .settle import REACH as SETTLE_REACH, settle
 
 
 # Two placements of a fragment agree when its fracture points move less than this RMS
@@ -26,6 +27,10 @@ PENETRATION_BAND = 3.0
 # median 0.02 (measured over vases, torsos and slabs of 5 and 10 pieces).
 CLASH_THICKNESS = 0.01
 CLASH_MIN_VOLUME = 0.002
+# A clash of closed solids thinner than NEAR_MISS times CLASH_THICKNESS may be right fits that each
+# miss by a little (a rescanned flat cut's slides about 1% of the object, and two such misses meet
+# on a third piece): the joined groups are settled together (`settle`) and asked again.
+NEAR_MISS = 3.0
 # Recovery from a wrong match (`grow_forest`): rounds of leaving one implicated tree edge out,
 # and the edges tried a round.
 RECOVERY_ROUNDS = 3
@@ -83,8 +88,10 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
     outweigh (by score) those that agree on any one other placement (wrong matches scatter:
     summed together, three wrong ones outvoted a right one) and (2) no fragment of one group then
     interpenetrates a fragment of the other: by the volume of their intersection where both
-    are closed solids (`solids`, manifold3d), else by `penetration` of the surface samples, and
-    (3) the two groups do not look like pieces of different objects (`apart`, with the (n, n)
+    are closed solids (`solids`, manifold3d), else by `penetration` of the surface samples (where
+    solids overlap thinly, under NEAR_MISS clash thicknesses, the two groups are first settled
+    together and the merge made at the settled poses where they then overlap no more,
+    `settled_join`), and (3) the two groups do not look like pieces of different objects (`apart`, with the (n, n)
     p(one object) `same_object` where given).
     An edge inside a group is used when it agrees with the placement the group already
     has (a closed loop), refused otherwise.
@@ -136,7 +143,7 @@ def _suspects(edges: list[Edge], group: list[int], notes: dict) -> list[Edge]:
     for an edge refused inside one group, the tree path between its ends (a loop that does
     not close); for one refused between groups (an interpenetration, or other matches that
     disagree), every tree edge of the two groups it would have joined."""
-    tree = [e for e in edges if notes.get((e.a, e.b)) == "used: spanning tree"]
+    tree = [e for e in edges if notes.get((e.a, e.b), "").startswith("used: spanning tree")]
     adjacent: dict[int, list[Edge]] = {}
     for e in tree:
         adjacent.setdefault(e.a, []).append(e)
@@ -218,15 +225,22 @@ def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float
             notes[(e.a, e.b)] = why
             continue
         clash = first_clash(members[ga], members[gb], pose, move, samples, params, scale, backend, solids, memo)
-        if clash is not None:
-            p, q, what = clash
+        settled = None
+        if clash is not None and clash[3] is not None and clash[3] < NEAR_MISS * CLASH_THICKNESS:
+            settled = settled_join(members[ga], members[gb], pose, move, e, clash[3], samples, params, scale, backend,
+                                   solids, memo)
+        if clash is not None and settled is None:
+            p, q, what, _ = clash
             notes[(e.a, e.b)] = f"refused: fragments {p} and {q} would interpenetrate ({what})"
             continue
         for q in members[gb]:
             pose[q] = move @ pose[q]
             group[q] = ga
+        for q, t in (settled or {}).items():
+            pose[q] = t
         members[ga] = sorted(members[ga] + members.pop(gb))
-        notes[(e.a, e.b)] = "used: spanning tree"
+        notes[(e.a, e.b)] = "used: spanning tree" + ("" if settled is None else (
+            f" (fragments {clash[0]} and {clash[1]} would interpenetrate, {clash[2]}; settled together they do not)"))
     return pose, group, notes
 
 
@@ -247,10 +261,35 @@ def apart(ga: list[int], gb: list[int], same_object: np.ndarray | None, params: 
     return f"{APART_NOTE} (mean p(one object) {p:.2f} under {params.apart_below:g})" if p < params.apart_below else None
 
 
+def settled_join(ga: list[int], gb: list[int], pose, move, edge: Edge, thickness: float, samples, params: Params,
+                 scale: float, backend, solids: list, memo: dict | None = None) -> dict | None:
+    """The poses of groups ga and gb (gb moved by `move`) settled together (`settle`), by fragment,
+    where then no two of them interpenetrate and `edge` still holds (within LOOP_TOLERANCE); else None.
+    thickness: of the clash, over the scale; the settling reaches twice as deep (a sunk surface's
+    points lie that far from the one they should touch)."""
+    union = ga + gb
+    trial = [None] * len(pose)
+    for p in ga:
+        trial[p] = pose[p]
+    for q in gb:
+        trial[q] = move @ pose[q]
+    label = [0 if i in union else i + 1 for i in range(len(pose))]
+    reach = max(params.contact_distance, 2 * thickness / SETTLE_REACH)
+    out = settle(trial, label, samples, params.with_(contact_distance=reach), scale, backend)
+    if _pose_gap(samples[edge.b].fracture, _inv(out[edge.a]) @ out[edge.b], edge.transform) > LOOP_TOLERANCE * scale:
+        return None
+    for k, p in enumerate(union):
+        for q in union[k + 1:]:
+            if first_clash([p], [q], out, np.eye(4), samples, params, scale, backend, solids, memo) is not None:
+                return None
+    return {i: out[i] for i in union}
+
+
 def first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Params, scale: float, backend,
                  solids: list, memo: dict | None = None):
-    """The first pair (p in ga, q in gb) that interpenetrates after gb moves by `move`, with a note
-    (memo: verdicts kept by pair and relative placement, for forests grown again)."""
+    """The first pair (p in ga, q in gb) that interpenetrates after gb moves by `move`: (p, q, note,
+    thickness) with the shared solid's mean thickness over the scale (None where judged on surface
+    samples) (memo: verdicts kept by pair and relative placement, for forests grown again)."""
     depth = params.penetration_depth * scale
     boxes_a = {p: _bbox(_apply(pose[p], samples[p].surface)) for p in ga}
     for q in gb:
@@ -264,25 +303,26 @@ def first_clash(ga: list[int], gb: list[int], pose, move, samples, params: Param
             key = (p, q, np.round(rel / [1, 1, 1, scale], 7).tobytes())
             if memo is not None and key in memo:
                 if memo[key] is not None:
-                    return p, q, memo[key]
+                    return (p, q) + memo[key]
                 continue
             what = _clash(p, q, rel, samples, params, scale, backend, solids)
             if memo is not None:
                 memo[key] = what
             if what is not None:
-                return p, q, what
+                return (p, q) + what
     return None
 
 
 def _clash(p: int, q: int, rel: np.ndarray, samples, params: Params, scale: float, backend, solids: list):
-    """Why fragments p and q (q moved by `rel` into p's frame) interpenetrate, or None."""
+    """Why fragments p and q (q moved by `rel` into p's frame) interpenetrate, with the shared solid's
+    thickness over the scale (None for surface samples), or None."""
     if solids[p] is not None and solids[q] is not None:
         share, thickness = overlap_volume(solids[p], solids[q], rel)
         if share > CLASH_MIN_VOLUME and thickness > CLASH_THICKNESS * scale:
-            return f"{100 * share:.1f}% of the smaller volume shared, {thickness / scale:.3f} thick"
+            return f"{100 * share:.1f}% of the smaller volume shared, {thickness / scale:.3f} thick", thickness / scale
         return None
     pen = penetration(samples[p], samples[q], rel, backend, params.penetration_depth * scale)
-    return f"{100 * pen:.1f}% of surface points inside" if pen > params.max_penetration else None
+    return (f"{100 * pen:.1f}% of surface points inside", None) if pen > params.max_penetration else None
 
 
 def overlap_volume(a, b, transform: np.ndarray) -> tuple[float, float]:
