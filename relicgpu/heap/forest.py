@@ -225,22 +225,23 @@ def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float
             notes[(e.a, e.b)] = why
             continue
         clash = first_clash(members[ga], members[gb], pose, move, samples, params, scale, backend, solids, memo)
-        settled = None
-        if clash is not None and clash[3] is not None and clash[3] < NEAR_MISS * CLASH_THICKNESS:
-            settled = settled_join(members[ga], members[gb], pose, move, e, clash[3], samples, params, scale, backend,
-                                   solids, memo)
-        if clash is not None and settled is None:
-            p, q, what, _ = clash
-            notes[(e.a, e.b)] = f"refused: fragments {p} and {q} would interpenetrate ({what})"
-            continue
+        settled, how = None, ""
+        if clash is not None:
+            p, q, what, thickness = clash
+            if thickness is not None and thickness < NEAR_MISS * CLASH_THICKNESS:
+                settled = settled_join(members[ga], members[gb], pose, move, e, thickness, samples, params, scale,
+                                       backend, solids, memo)
+            if settled is None:
+                notes[(e.a, e.b)] = f"refused: fragments {p} and {q} would interpenetrate ({what})"
+                continue
+            how = f" (fragments {p} and {q} would interpenetrate, {what}; settled together they do not)"
         for q in members[gb]:
             pose[q] = move @ pose[q]
             group[q] = ga
-        for q, t in (settled or {}).items():
-            pose[q] = t
+        for frag, t in (settled or {}).items():
+            pose[frag] = t
         members[ga] = sorted(members[ga] + members.pop(gb))
-        notes[(e.a, e.b)] = "used: spanning tree" + ("" if settled is None else (
-            f" (fragments {clash[0]} and {clash[1]} would interpenetrate, {clash[2]}; settled together they do not)"))
+        notes[(e.a, e.b)] = "used: spanning tree" + how
     return pose, group, notes
 
 
@@ -274,14 +275,13 @@ def settled_join(ga: list[int], gb: list[int], pose, move, edge: Edge, thickness
     for q in gb:
         trial[q] = move @ pose[q]
     label = [0 if i in union else i + 1 for i in range(len(pose))]
-    reach = max(params.contact_distance, 2 * thickness / SETTLE_REACH)
-    out = settle(trial, label, samples, params.with_(contact_distance=reach), scale, backend)
+    reach = max(SETTLE_REACH * params.contact_distance, 2 * thickness)
+    out = settle(trial, label, samples, params, scale, backend, reach=reach)
     if _pose_gap(samples[edge.b].fracture, _inv(out[edge.a]) @ out[edge.b], edge.transform) > LOOP_TOLERANCE * scale:
         return None
-    for k, p in enumerate(union):
-        for q in union[k + 1:]:
-            if first_clash([p], [q], out, np.eye(4), samples, params, scale, backend, solids, memo) is not None:
-                return None
+    if any(first_clash(union[:k], [q], out, np.eye(4), samples, params, scale, backend, solids, memo) is not None
+           for k, q in enumerate(union)):
+        return None
     return {i: out[i] for i in union}
 
 

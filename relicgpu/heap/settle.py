@@ -37,7 +37,7 @@ TRUSTED = 50  # touching pairs: a move made on fewer is undone where it leaves f
 
 
 def settle(pose: list, group: list[int], samples: list[SurfaceSample], params: Params, scale: float,
-           backend) -> list:
+           backend, reach: float | None = None) -> list:
     """Poses settled against all touching neighbours (see the module docstring).
 
     Parameters
@@ -48,13 +48,14 @@ def settle(pose: list, group: list[int], samples: list[SurfaceSample], params: P
     params : `Params.settle_rounds` rounds (0: the poses as given), `Params.contact_distance`
     scale : the working scale
     backend : its `nearest_index` finds the pairs
+    reach : how far apart a pair may lie, of the scale (default REACH contact distances)
 
     Returns
     -------
     list of (4, 4) float or None, the settled poses (new arrays; `pose` is not changed)
     """
     pose = [None if p is None else np.array(p, np.float64) for p in pose]
-    reach = REACH * params.contact_distance * scale
+    reach = (REACH * params.contact_distance if reach is None else reach) * scale
     anchors = {min(i for i in range(len(group)) if group[i] == g) for g in set(group)}
     movable = [i for i in range(len(pose)) if pose[i] is not None and i not in anchors
                and len(samples[i].surface) >= MIN_PAIRS]
