@@ -186,8 +186,8 @@ class Params:
     # contradict it. Under every single object's least such mean (0.073, the Blender cube;
     # docs/benchmarks.md, "Mixed heaps: groups that look like two objects"); None: not asked
     apart_below: float | None = 0.05
-    # assembly: rounds in which every placed fragment is settled against all the neighbours it
-    # touches at once (`heap.settle`; 0: the poses of the pose graph as they are)
+    # assembly: rounds in which the placed fragments of each group are settled together on all the
+    # neighbours they touch (`heap.settle`, one solve a round; 0: the poses of the pose graph as they are)
     settle_rounds: int = 30
 
     def with_(self, **changes) -> "Params":

@@ -4,8 +4,8 @@ vertices, a share of the object's size; the 1% bar of `evaluate.score`).
 
 Started from the truth, a settling that holds pieces in place leaves every one well under 1%; one
 that drifts on noisy contacts moves right pieces off (docs/benchmarks.md, "Moves on few pairs").
-`--trusted` sets `settle.TRUSTED` (a move made on fewer touching pairs is undone where it leaves
-fewer), several values side by side in one run; 0 turns the rule off.
+`--trusted` sets `settle.TRUSTED` (a fragment touching its neighbours at fewer pairs stays where it
+is), several values side by side in one run; 0 turns the rule off.
 
     python scripts/bench_settle.py --families voronoi-noisy,vessel-noisy --seeds 0,1 --faces 1500
 """

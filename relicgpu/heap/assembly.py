@@ -6,7 +6,7 @@
          -> spanning forest of verified matches, best first,
             refusing merges that interpenetrate or break a closed loop
          -> what stayed apart matched against the merged placed groups (`grow`; cached per group pair)
-         -> joint refinement: the pose graph, then each fragment settled on every neighbour it touches
+         -> joint refinement: the pose graph, then all fragments settled together on every neighbour they touch
          -> assembly.json, assembly.glb, merged.stl
 
 Every fragment is prepared at the same scale (the median fragment size, or

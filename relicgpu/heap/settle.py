@@ -1,4 +1,4 @@
-"""Placed fragments settled against every neighbour they touch, at once (issue 16).
+"""Placed fragments settled against every neighbour they touch, all at once (issue 16).
 
 A pair's fit is held only by its own break. A thin wall's break is a narrow band, and once
 rescanned (noisy samples, a smoothing reconstruction) its rims are rounded and its two sides stand
@@ -7,18 +7,23 @@ from the true pose drifts as far (corpus vessel-noisy, 12,000 faces a piece; doc
 "Placed fragments settled on all their neighbours"). A piece of an assembled object touches several
 neighbours, along bands that run different ways: what one band leaves loose another holds.
 
-`settle` moves each placed fragment in turn (up to `Params.settle_rounds` rounds, until one moves
-nothing; each group's lowest-index fragment fixed) by point-to-plane steps of its whole surface
-sample onto the surfaces of the others of its group, taking only the pairs that touch now (within
-`REACH` contact distances) and face each other (the break's two sides; skins lying side by side
-across a seam face the same way). No segmentation is asked, and contacts the matches did not name
-(the third piece at a corner, the far end of a closed loop) take part.
+`settle` moves the placed fragments of each group together (the group's first placed fragment
+fixed): a round is one linearised point-to-plane solve for the moves of all of them (6 unknowns a
+fragment) over the touching pairs of every two, up to `Params.settle_rounds` rounds, until a round
+moves no fragment's surface more than STILL. A pair is a surface sample within `reach` of a
+neighbour's that faces it (the break's two sides; skins lying side by side across a seam face the
+same way), weighed 1 / (1 + (d / SPREAD)^2) by its distance d from the neighbour's tangent plane, so
+that a corner that does not close pulls less than a seam that does. No segmentation is asked, and
+contacts the matches did not name (the third piece at a corner, the far end of a closed loop) take
+part. Moved one at a time onto neighbours that are themselves off, as this did before, the pieces
+kept the error of a chain of near-right fits (rescanned breaks fit 0.2-1.3% of the size off, and
+the seam at the chain's end does not close); solved together, the seams share it
+(docs/benchmarks.md, "The settling solved for all pieces at once").
 
-A move made on few pairs (under `TRUSTED`) is kept only where it leaves the fragment touching its
-neighbours at no fewer pairs than before. At a tenth of the resolution (about 1,500 faces a piece)
-a piece touches its neighbours at 8-80 such pairs, and a step on a handful of noisy pairs, or onto
-a neighbour placed by a tight wrong match, pulls it away from the rest and the right pieces beyond
-follow it; a step that mends a near miss closes the contact instead.
+A fragment touching its neighbours at fewer than TRUSTED pairs when the settling starts stays
+where it is and holds the others like the fixed one: at a tenth of the resolution (about 1,500
+faces a piece) a piece touches its neighbours at 8-80 pairs, and steps on a handful of noisy pairs
+pull it off its place (docs/benchmarks.md, "Moves on few pairs").
 """
 from __future__ import annotations
 
@@ -28,16 +33,16 @@ from ..pair.icp import apply, plane_step
 from ..pair.verify import SurfaceSample
 from ..params import Params
 
-REACH = 0.5  # of Params.contact_distance: pairs farther apart take no part
+REACH = 1.0  # of Params.contact_distance: pairs farther apart take no part
+SPREAD = 0.3  # of Params.contact_distance: the tangent-plane distance at which a pair weighs half
 FACING = -0.5  # the cosine under which two surface points face each other
-STEPS = 5  # point-to-plane steps a fragment takes each round
-MIN_PAIRS = 12  # fewer touching pairs than this move nothing
+MIN_PAIRS = 12  # two fragments touching at fewer pairs than this do not pull on each other
+TRUSTED = 50  # touching pairs: a fragment held by fewer stays where it is
 STILL = 1e-4  # of the scale: a round that moves no fragment's surface more than this (RMS) ends the settling
-TRUSTED = 50  # touching pairs: a move made on fewer is undone where it leaves fewer
 
 
 def settle(pose: list, group: list[int], samples: list[SurfaceSample], params: Params, scale: float,
-           backend, reach: float | None = None) -> list:
+           backend, reach: float | None = None, trusted: int | None = None) -> list:
     """Poses settled against all touching neighbours (see the module docstring).
 
     Parameters
@@ -49,6 +54,7 @@ def settle(pose: list, group: list[int], samples: list[SurfaceSample], params: P
     scale : the working scale
     backend : its `nearest_index` finds the pairs
     reach : how far apart a pair may lie, of the scale (default REACH contact distances)
+    trusted : a fragment touching at fewer pairs stays where it is (default TRUSTED)
 
     Returns
     -------
@@ -56,81 +62,69 @@ def settle(pose: list, group: list[int], samples: list[SurfaceSample], params: P
     """
     pose = [None if p is None else np.array(p, np.float64) for p in pose]
     reach = (REACH * params.contact_distance if reach is None else reach) * scale
-    anchors = {min(i for i in range(len(group)) if group[i] == g) for g in set(group)}
-    movable = [i for i in range(len(pose)) if pose[i] is not None and i not in anchors
-               and len(samples[i].surface) >= MIN_PAIRS]
-    placed = [_placed(samples[k], pose[k]) for k in range(len(pose))]  # (points, normals) in the assembly's frame
-    spheres = [_sphere(p) for p in placed]
-    for _ in range(params.settle_rounds if movable else 0):
-        moved = 0.0
-        for i in movable:
-            others = [k for k in range(len(pose)) if k != i and group[k] == group[i] and pose[k] is not None
-                      and _near(spheres[i], spheres[k], reach)]
-            if not others:
-                continue
-            target = np.concatenate([placed[k][0] for k in others])
-            normals = np.concatenate([placed[k][1] for k in others])
-            before, index = placed[i][0], backend.nearest_index(target)
-            new, held = _steps(samples[i].surface, samples[i].normals, target, normals, pose[i], reach, index)
-            if held < TRUSTED and new is not pose[i] and np.count_nonzero(
-                    _pairs(samples[i].surface, samples[i].normals, new, target, normals, reach, index)[2]) < held:
-                continue
-            pose[i] = new
-            placed[i] = _placed(samples[i], pose[i])
-            spheres[i] = _sphere(placed[i])
-            moved = max(moved, float(np.sqrt(((placed[i][0] - before) ** 2).sum(axis=1).mean())))
-        if moved < STILL * scale:
-            break
+    spread = SPREAD * params.contact_distance * scale
+    for g in sorted(set(group)):
+        placed = [i for i in range(len(pose)) if group[i] == g and pose[i] is not None
+                  and len(samples[i].surface) >= MIN_PAIRS]
+        if len(placed) < 2 or params.settle_rounds < 1:
+            continue
+        held, _ = _solve(placed, [], pose, samples, reach, spread, scale, backend)
+        free = [i for i in placed[1:] if held.get(i, 0) >= (TRUSTED if trusted is None else trusted)]
+        for _ in range(params.settle_rounds if free else 0):
+            _, moves = _solve(placed, free, pose, samples, reach, spread, scale, backend)
+            if moves is None:
+                break
+            moved = 0.0
+            for i, step in moves.items():
+                before = apply(pose[i], samples[i].surface)
+                pose[i] = step @ pose[i]
+                moved = max(moved, float(np.sqrt(((apply(pose[i], samples[i].surface) - before) ** 2)
+                                                 .sum(axis=1).mean())))
+            if moved < STILL * scale:
+                break
     return pose
 
 
-def _placed(sample: SurfaceSample, pose: np.ndarray | None):
-    """A fragment's (N, 3) surface points and normals carried by its pose, or None where unplaced."""
-    return None if pose is None else (apply(pose, sample.surface), sample.normals @ pose[:3, :3].T)
-
-
-def _sphere(placed):
-    if placed is None or len(placed[0]) == 0:
-        return None
-    centre = placed[0].mean(axis=0)
-    return centre, float(np.sqrt(((placed[0] - centre) ** 2).sum(axis=1).max()))
-
-
-def _near(a, b, reach: float) -> bool:
-    return a is not None and b is not None and float(np.linalg.norm(a[0] - b[0])) <= a[1] + b[1] + reach
-
-
-def _pairs(points: np.ndarray, point_normals: np.ndarray, pose: np.ndarray, target: np.ndarray,
-           target_normals: np.ndarray, reach: float, index):
-    """(N, 3) points carried by `pose`, the (N,) index of each one's nearest target point, and the
-    (N,) mask of those within `reach` whose normals face the target's."""
-    moved, turned = apply(pose, points), point_normals @ pose[:3, :3].T
-    idx, dist = index.query(moved, within=reach)
-    dist = np.asarray(dist, np.float64)
-    idx = np.where(np.isfinite(dist), np.asarray(idx, np.int64), 0)
-    return moved, idx, (dist < reach) & (np.einsum("ij,ij->i", turned, target_normals[idx]) < FACING)
-
-
-def _steps(points: np.ndarray, point_normals: np.ndarray, target: np.ndarray, target_normals: np.ndarray,
-           pose: np.ndarray, reach: float, index) -> tuple[np.ndarray, int]:
-    """`pose` after STEPS point-to-plane steps of (N, 3) points (normals (N, 3)) onto the (M, 3)
-    target's tangent planes, over the pairs within `reach` that face each other, and the count of
-    those pairs at `pose` (the same array where no step was taken); the step turns about the moved
-    points' centroid in units of their RMS radius (as `icp.refine_point_to_plane`)."""
-    radius = float(np.sqrt(((points - points.mean(axis=0)) ** 2).sum(axis=1).mean())) or 1.0
-    held = None
-    for _ in range(STEPS):
-        moved, idx, use = _pairs(points, point_normals, pose, target, target_normals, reach, index)
-        count = np.count_nonzero(use)
-        held = count if held is None else held
-        if count < MIN_PAIRS:
-            break
-        p, q, n = moved[use], target[idx[use]], target_normals[idx[use]]
-        centre = p.mean(axis=0)
-        a = np.concatenate([np.cross((p - centre) / radius, n), n], axis=1)
-        b = -np.einsum("ij,ij->i", p - q, n) / radius
-        x = np.linalg.solve(a.T @ a + 1e-12 * np.eye(6), a.T @ b)
-        pose = plane_step(x, centre, radius) @ pose
-        if np.linalg.norm(x) < 1e-9:
-            break
-    return pose, held
+def _solve(placed: list[int], free: list[int], pose: list, samples: list[SurfaceSample], reach: float,
+           spread: float, scale: float, backend) -> tuple[dict, dict | None]:
+    """One linearised point-to-plane solve for the moves of the `free` fragments over the touching
+    pairs of every two `placed` ones: ({fragment: its touching pairs}, {free fragment: (4, 4) step}),
+    the steps None where no two touch."""
+    surface = {i: (apply(pose[i], samples[i].surface), samples[i].normals @ pose[i][:3, :3].T) for i in placed}
+    centre = {i: surface[i][0].mean(axis=0) for i in placed}
+    radius = {i: float(np.sqrt(((surface[i][0] - centre[i]) ** 2).sum(axis=1).mean())) or 1.0 for i in placed}
+    bound = {i: float(np.sqrt(((surface[i][0] - centre[i]) ** 2).sum(axis=1).max())) for i in placed}
+    column = {i: 6 * k for k, i in enumerate(free)}
+    normal = np.zeros((6 * len(free), 6 * len(free)))
+    rhs = np.zeros(6 * len(free))
+    held: dict[int, int] = {}
+    for k in placed:
+        near = [i for i in placed if i != k and np.linalg.norm(centre[i] - centre[k]) <= bound[i] + bound[k] + reach]
+        if not near:
+            continue
+        index = backend.nearest_index(surface[k][0])
+        for i in near:  # i's samples onto k's tangent planes
+            p, p_normals = surface[i]
+            idx, dist = index.query(p, within=reach)
+            dist = np.asarray(dist, np.float64)
+            idx = np.where(np.isfinite(dist), np.asarray(idx, np.int64), 0)
+            q, n = surface[k][0][idx], surface[k][1][idx]
+            use = (dist < reach) & (np.einsum("ij,ij->i", p_normals, n) < FACING)
+            if np.count_nonzero(use) < MIN_PAIRS:
+                continue
+            held[i] = held.get(i, 0) + int(np.count_nonzero(use))
+            p, q, n = p[use], q[use], n[use]
+            off = np.einsum("ij,ij->i", p - q, n)
+            weight = 1.0 / (1.0 + (off / spread) ** 2)
+            # the pair's distance grows by (turn_i x (p - c_i) + radius_i t_i - turn_k x (q - c_k) - radius_k t_k) . n
+            blocks = [(column[f], sign * np.concatenate([np.cross(x - centre[f], n), radius[f] * n], axis=1) / scale)
+                      for f, x, sign in ((i, p, 1.0), (k, q, -1.0)) if f in column]
+            for a, rows_a in blocks:
+                rhs[a:a + 6] -= rows_a.T @ (weight * off / scale)
+                for b, rows_b in blocks:
+                    normal[a:a + 6, b:b + 6] += rows_a.T @ (rows_b * weight[:, None])
+    if not held or not free:
+        return held, None
+    normal += 1e-9 * (np.trace(normal) / len(normal) + 1e-12) * np.eye(len(normal))
+    x = np.linalg.solve(normal, rhs)
+    return held, {i: plane_step(x[column[i]:column[i] + 6], centre[i], radius[i]) for i in free}
