@@ -274,10 +274,10 @@ def settled_join(ga: list[int], gb: list[int], pose, move, edge: Edge, thickness
         trial[p] = pose[p]
     for q in gb:
         trial[q] = move @ pose[q]
-    label = [0 if i in union else i + 1 for i in range(len(pose))]
     reach = max(SETTLE_REACH * params.contact_distance, 2 * thickness)
-    # pieces that interpenetrate face each other at few pairs, and here they are what is settled
-    out = settle(trial, label, samples, params, scale, backend, reach=reach, trusted=0)
+    # one group (the others are unplaced in `trial`); pieces that interpenetrate face each other at
+    # few pairs, and here they are what is settled
+    out = settle(trial, [0] * len(pose), samples, params, scale, backend, reach=reach, trusted=0)
     if _pose_gap(samples[edge.b].fracture, _inv(out[edge.a]) @ out[edge.b], edge.transform) > LOOP_TOLERANCE * scale:
         return None
     if any(first_clash(union[:k], [q], out, np.eye(4), samples, params, scale, backend, solids, memo) is not None
