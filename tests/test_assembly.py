@@ -466,6 +466,11 @@ def test_cli_writes_outputs_and_leaves_inputs_alone(tmp_path, synth_dir, local_r
     if len(placed) == len(frags):  # all placed right: the union is the object again
         assert abs(merged.volume - broken_volume) < 0.03 * broken_volume
     assert "verified" in proc.stderr
+    assert "placed fragments lie on a closed loop of matches" in proc.stderr
+    used = [(m["a"], m["b"]) for m in doc["matches"] if m["used"]]
+    for f in doc["fragments"]:
+        assert f["used_matches"] == sum(f["name"] in pair for pair in used)
+        assert not f["on_loop"] or f["used_matches"] >= 2  # a loop needs two matches at each fragment on it
 
 
 def _without_timings(doc):

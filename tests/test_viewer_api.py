@@ -223,6 +223,19 @@ def test_fragments_poses_and_matches(client_and_pipeline):
     assert [(m["a"], m["b"], m["used"]) for m in matches] == [
         ("piece_0", "piece_1", True), ("piece_1", "piece_2", True), ("piece_0", "piece_2", False)]
     assert client.get("/api/cases/other/matches").get_json() == {"case": "other", "assembled": False, "matches": []}
+    # how each is held: a chain of two used matches, no loop
+    assert [(f["used_matches"], f["on_loop"]) for f in body["fragments"]] == [(1, False), (2, False), (1, False)]
+    assert all(f["used_matches"] == 0 and not f["on_loop"] for f in other["fragments"])
+
+
+def test_a_used_match_that_closes_a_loop_holds_every_fragment_on_it(box):
+    ws, truth = box
+    path = ws / "box" / "assembly" / "assembly.json"
+    doc = json.loads(path.read_text())
+    doc["matches"][2]["used"] = True
+    path.write_text(json.dumps(doc))
+    body = create_app(ws).test_client().get("/api/cases/box/fragments").get_json()
+    assert [(f["used_matches"], f["on_loop"]) for f in body["fragments"]] == [(2, True), (2, True), (2, True)]
 
 
 def test_mesh_is_the_loaded_fragment(client_and_pipeline):

@@ -348,3 +348,49 @@ def test_object_groups_colour_and_list_the_fragments(browser, tmp_path):
         pg.close()
     finally:
         server.close()
+
+
+def test_colour_by_how_each_piece_is_held(browser, tmp_path):
+    """'how it is held' colours an assembled case by support (relicgpu.heap.support): the box's
+    three pieces joined by a chain of two used matches, so the middle one is in a chain and the two
+    ends rest on one match each, tagged so in the list; with the third match used they all lie on a loop."""
+    pytest.importorskip("playwright")
+    from relicgpu.viewer.app import create_app, serve_in_thread
+    from test_viewer_api import TruthPipeline, make_box_workspace
+
+    truth = make_box_workspace(tmp_path / "ws", case="box")
+    pipe = TruthPipeline(truth)
+    server, url = serve_in_thread(create_app(tmp_path / "ws", prepare=pipe.prepare, match_pair=pipe.match_pair))
+    try:
+        pg = new_page(browser)
+        pg.goto(url)
+        pg.wait_for_selector('body[data-state="ready"]')
+        pg.select_option("#colour-select", "support")
+        pg.wait_for_selector('body[data-colour="support"]')
+        legend = pg.locator("#group-legend span")
+        assert [legend.nth(i).inner_text() for i in range(legend.count())] == [
+            "in a chain of matches, no loop (1)", "rests on one match alone (2)"]
+        tags = {n: pg.locator(f'#fragment-list li[data-name="{n}"] .tag').inner_text() for n in truth["names"]}
+        assert tags == {"piece_0": "group 0 · one match", "piece_1": "group 0 · no loop", "piece_2": "group 0 · one match"}
+        swatch = {n: pg.locator(f'#fragment-list li[data-name="{n}"] .swatch').evaluate(
+            "e => getComputedStyle(e).backgroundColor") for n in truth["names"]}
+        assert swatch["piece_0"] == swatch["piece_2"] != swatch["piece_1"]
+        assert pg.problems == []
+        pg.close()
+
+        path = tmp_path / "ws" / "box" / "assembly" / "assembly.json"
+        doc = json.loads(path.read_text())
+        doc["matches"][2]["used"] = True
+        path.write_text(json.dumps(doc))
+        pg = new_page(browser)
+        pg.goto(url)
+        pg.wait_for_selector('body[data-state="ready"]')
+        pg.select_option("#colour-select", "support")
+        pg.wait_for_selector('body[data-colour="support"]')
+        assert pg.locator("#group-legend span").all_inner_texts() == ["on a closed loop of matches (3)"]
+        assert all(pg.locator(f'#fragment-list li[data-name="{n}"] .tag').inner_text() == "group 0"
+                   for n in truth["names"])
+        assert pg.problems == []
+        pg.close()
+    finally:
+        server.close()

@@ -1,6 +1,6 @@
 // The page: case choice, fragment and match lists, view controls, picking head nodes, assembly jobs.
 import * as api from './api.js';
-import { FragmentScene, fragmentColor, groupColor } from './scene.js';
+import { FragmentScene, fragmentColor, groupColor, supportColor } from './scene.js';
 
 const $ = (id) => document.getElementById(id);
 const ui = {
@@ -192,16 +192,32 @@ async function loadContours(caseId, stale) {
   document.body.dataset.contours = 'ready';
 }
 
-// --- colours: by fragment, by object group, by assembled piece -------------------------
+// --- colours: by fragment, by object group, by assembled piece, by how a piece is held ----
+
+const SUPPORT_ORDER = ['loop', 'chain', 'one', 'unplaced'];
+const SUPPORT_LABELS = {
+  loop: 'on a closed loop of matches',
+  chain: 'in a chain of matches, no loop',
+  one: 'rests on one match alone',
+  unplaced: 'unplaced',
+};
+
+function supportOf(f) {
+  if (!f.placed) return 'unplaced';
+  if (f.on_loop) return 'loop';
+  return f.used_matches > 1 ? 'chain' : 'one';
+}
 
 function colourOf(f) {
   if (state.colourBy === 'object') return groupColor(f.object);
   if (state.colourBy === 'assembly') return groupColor(f.placed ? f.group : null);
+  if (state.colourBy === 'support') return supportColor(supportOf(f));
   return fragmentColor(f.index);
 }
 
 function setColourChoices(info) {
-  const options = { fragment: true, object: Boolean(info.objects), assembly: Boolean(info.assembled) };
+  const assembled = Boolean(info.assembled);
+  const options = { fragment: true, object: Boolean(info.objects), assembly: assembled, support: assembled };
   for (const opt of ui.colourSelect.options) opt.disabled = !options[opt.value];
   // A heap sorted into objects is shown by object; otherwise keep the choice while it stays possible.
   if (info.objects) state.colourBy = 'object';
@@ -223,22 +239,27 @@ function applyColours() {
 function renderGroupLegend() {
   ui.groupLegend.innerHTML = '';
   if (state.colourBy === 'fragment') return;
-  const key = state.colourBy === 'object' ? (f) => f.object : (f) => (f.placed ? f.group : null);
+  const support = state.colourBy === 'support';
+  const key = state.colourBy === 'object' ? (f) => f.object
+    : support ? supportOf : (f) => (f.placed ? f.group : null);
   const members = new Map();
   for (const f of state.fragments) {
     const k = key(f) ?? null;
     if (!members.has(k)) members.set(k, []);
     members.get(k).push(f.name);
   }
-  const keys = [...members.keys()].sort((a, b) => (a === null) - (b === null) || a - b);
+  const keys = [...members.keys()].sort(support
+    ? (a, b) => SUPPORT_ORDER.indexOf(a) - SUPPORT_ORDER.indexOf(b)
+    : (a, b) => (a === null) - (b === null) || a - b);
   for (const k of keys) {
     const span = document.createElement('span');
     span.dataset.group = k === null ? '' : String(k);
     const sw = document.createElement('i');
     sw.className = 'swatch';
-    sw.style.background = `#${groupColor(k).color.getHexString()}`;
+    sw.style.background = `#${(support ? supportColor(k) : groupColor(k)).color.getHexString()}`;
     const word = state.colourBy === 'object' ? 'object' : 'piece';
-    const label = k === null ? (state.colourBy === 'object' ? 'no object' : 'unplaced') : `${word} ${k}`;
+    const label = support ? SUPPORT_LABELS[k]
+      : k === null ? (state.colourBy === 'object' ? 'no object' : 'unplaced') : `${word} ${k}`;
     span.append(sw, `${label} (${members.get(k).length})`);
     span.title = `${members.get(k).join(', ')}: click to frame them`;
     span.addEventListener('click', () => view.fit(members.get(k)));
@@ -277,6 +298,7 @@ function renderFragmentList() {
     const tags = [];
     if (state.info.objects) tags.push(f.object === null || f.object === undefined ? 'no object' : `object ${f.object}`);
     if (state.info.assembled) tags.push(f.placed ? `group ${f.group ?? '?'}` : 'unplaced');
+    if (state.info.assembled && f.placed && supportOf(f) !== 'loop') tags.push(f.used_matches > 1 ? 'no loop' : 'one match');
     tag.textContent = tags.join(' · ');
     li.append(cb, sw, name, tag);
     li.addEventListener('click', () => focusFragment(f.name));

@@ -18,6 +18,15 @@ export function fragmentColor(index) {
 // Object groups and assembled pieces: the same golden-angle hues, a little darker and more
 // saturated so that a group colour is not read as one fragment's; no group: grey.
 export const NO_GROUP_COLOR = new THREE.Color(0x8a8a8a);
+
+// How the assembly holds a placed fragment (relicgpu.heap.support): on a closed loop of matches,
+// in a chain of them with no loop, or resting on one match alone; unplaced: grey.
+const SUPPORT_COLORS = { loop: 0x3f9f4f, chain: 0xd8b13a, one: 0xd9602a };
+
+export function supportColor(kind) {
+  const hex = SUPPORT_COLORS[kind];
+  return { hue: null, color: hex === undefined ? NO_GROUP_COLOR.clone() : new THREE.Color(hex) };
+}
 export function groupColor(group) {
   if (group === null || group === undefined) return { hue: null, color: NO_GROUP_COLOR.clone() };
   const hue = (0.03 + group * GOLDEN) % 1;

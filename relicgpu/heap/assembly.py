@@ -44,6 +44,7 @@ from .grow import grow_groups
 from .outputs import closed_solid, write_outputs
 from .screen import SCREEN_LCS_WEIGHT, _ppf_screen_job, _screen_blocks, normalised_support, screen, select_candidates
 from .settle import settle
+from .support import held_by
 from ..params import Params
 from ..pair.icp import invert
 from ..pair.pipeline import match_pair
@@ -114,12 +115,18 @@ class Assembly:
             out.setdefault(g, []).append(i)
         return out
 
+    def support(self) -> tuple[list[int], list[bool]]:
+        """The used matches at each fragment and whether it lies on a closed loop of them (`held_by`)."""
+        return held_by(len(self.names), [(m.a, m.b) for m in self.matches if m.used])
+
     def to_dict(self) -> dict:
+        used, on_loop = self.support()
         return {
             "version": 1,
             "fragments": [{"name": name, "file": file, "pose": None if pose is None else np.asarray(pose).tolist(),
-                           "group": int(g)}
-                          for name, file, pose, g in zip(self.names, self.files or self.names, self.poses, self.groups)],
+                           "group": int(g), "used_matches": k, "on_loop": loop}
+                          for name, file, pose, g, k, loop in zip(self.names, self.files or self.names, self.poses,
+                                                                   self.groups, used, on_loop)],
             # every candidate pair matched in full: verified or not, used or not, and why
             "matches": [m.to_dict(self.names) for m in self.matches + self.rejected],
             "backend": self.backend,

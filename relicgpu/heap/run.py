@@ -48,7 +48,7 @@ def assemble_grouped(fragments_or_dir, out_dir=None, n_groups: int | None = None
         if len(members) == 1:
             results.append(None)
             doc_fragments.append({"name": names[0], "file": members[0].file, "pose": np.eye(4).tolist(),
-                                  "group": offset, "object": k})
+                                  "group": offset, "used_matches": 0, "on_loop": False, "object": k})
             offset += 1
             continue
         res = assemble(members, out_dir=sub_out, **assemble_kw)
@@ -115,12 +115,15 @@ def _assemble_main(args) -> int:
         print(line, file=sys.stderr)
     batch.require(2)
     if args.group:
-        grouping, _ = assemble_grouped(batch, args.out, classifier=args.classifier, backend=args.backend,
-                                       engine=args.engine, workers=args.workers, cache_dir=args.cache_dir,
-                                       progress=not args.quiet, address=args.address, top_k=args.top_k,
-                                       gpus_per_task=args.gpus_per_task)
+        grouping, results = assemble_grouped(batch, args.out, classifier=args.classifier, backend=args.backend,
+                                             engine=args.engine, workers=args.workers, cache_dir=args.cache_dir,
+                                             progress=not args.quiet, address=args.address, top_k=args.top_k,
+                                             gpus_per_task=args.gpus_per_task)
         log(f"{len(grouping.groups)} object(s) of sizes {[len(g) for g in grouping.groups]}; "
             f"wrote {Path(args.out) / 'assembly.json'}, groups.json, object_<k>/")
+        for k, res in enumerate(results):
+            for line in support_lines(res) if res is not None else []:
+                log(f"object {k}: {line}")
         return 0
     try:
         result = assemble(batch, backend=args.backend, engine=args.engine, workers=args.workers,
@@ -145,6 +148,8 @@ def _assemble_main(args) -> int:
     sizes = sorted((len(m) for m in result.group_members().values() if len(m) > 1), reverse=True)
     log(f"{s['placed']} fragments placed in {len(sizes)} group(s) of sizes {sizes}; "
         f"{s['fragments'] - s['placed']} unplaced")
+    for line in support_lines(result):
+        log(line)
     for e in s["errors"]:
         log(f"warning: pair failed: {e}")
     for line in grouped_lines("note", s.get("merge_notes", [])):
@@ -153,6 +158,22 @@ def _assemble_main(args) -> int:
     merged = not any("no merged.stl written" in n for n in s.get("merge_notes", []))
     log(f"wrote {Path(args.out) / 'assembly.json'}, assembly.glb" + (", merged.stl" if merged else ""))
     return 0
+
+
+def support_lines(result, shown: int = 12) -> list[str]:
+    """How the placed fragments are held: how many lie on a closed loop of used matches, and the
+    names of those that rest on one match alone (the ones to check first)."""
+    used, on_loop = result.support()
+    placed = [i for i, p in enumerate(result.poses) if p is not None]
+    if not placed:
+        return []
+    lone = [result.names[i] for i in placed if used[i] <= 1]
+    lines = [f"{sum(on_loop[i] for i in placed)} of {len(placed)} placed fragments lie on a closed loop of matches"]
+    if lone:
+        more = f" and {len(lone) - shown} more" if len(lone) > shown else ""
+        lines.append(f"{len(lone)} rest on one match alone (check these first; on_loop and used_matches in "
+                     f"assembly.json): {', '.join(lone[:shown])}{more}")
+    return lines
 
 
 def _group_arguments(parser, name) -> None:

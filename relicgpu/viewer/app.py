@@ -16,7 +16,8 @@ workspace is. The API (all JSON; errors are `{"error": message}` with a 4xx or
                                                   a file known neither way counts one
                                                   ("fragments_exact": false then)
     GET  /api/cases/<case>/fragments              fragments (one per body: a file of several bodies
-                                                  gives id#1, id#2, ...), poses, groups, object groups
+                                                  gives id#1, id#2, ...), poses, groups, object groups,
+                                                  how the assembly holds each (used_matches, on_loop)
     GET  /api/cases/<case>/fragments/<name>/mesh  that fragment's vertices/faces (base64 float32/uint32)
     GET  /api/cases/<case>/fragments/<name>/contours  segmentation and contours (relicgpu.prepare)
     GET  /api/cases/<case>/matches                the pair matches of assembly.json

@@ -11,6 +11,7 @@ from pathlib import Path
 from flask import Blueprint, Response, current_app, jsonify, request, send_file
 from werkzeug.security import safe_join
 
+from ..heap.support import held_by
 from .jobs import FINAL_STATES, JobBusy
 from .serialize import b64, match_to_json, prepared_to_json, sse
 from .state import ApiError, ViewerState
@@ -112,7 +113,7 @@ def api_cases():
 
 @bp.get("/api/cases/<case_id>/fragments")
 def api_fragments(case_id):
-    """A case's fragments with their poses, groups and object groups."""
+    """A case's fragments with their poses, groups, object groups and how the assembly holds each."""
     st = _state()
     ws = st.ws
     case = st.case_or_404(case_id)
@@ -131,6 +132,9 @@ def api_fragments(case_id):
         notes.append(str(exc))
     if objects is not None:
         notes.extend(objects.notes)
+    where = {name: k for k, name in enumerate(entries)}
+    used, on_loop = held_by(len(where), [(where[m["a"]], where[m["b"]]) for m in
+                                         (assembly.matches if assembly else []) if m["used"]])
     frags = []
     for i, e in enumerate(entries.values()):
         pose = assembly.poses.get(e.name) if assembly else None
@@ -144,6 +148,8 @@ def api_fragments(case_id):
             "group": assembly.groups.get(e.name) if assembly else None,
             "object": objects.groups.get(e.name) if objects else None,
             "placed": pose is not None,
+            "used_matches": used[i],  # how the assembly holds it (relicgpu.heap.support)
+            "on_loop": on_loop[i],
         })
     return jsonify(case=case.id, fragments=frags, assembled=assembly is not None,
                    assembly_error=error, notes=notes,
