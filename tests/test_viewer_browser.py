@@ -309,20 +309,28 @@ def test_demo_case_end_to_end(browser, tmp_path, monkeypatch):
         server.close()
 
 
-def test_object_groups_colour_and_list_the_fragments(browser, tmp_path):
-    """A case with a groups.json (`relicgpu group`): fragments coloured by object group, a legend
-    of the groups, each list row tagged with its object; 'colour by fragment' brings the fragment
-    colours back."""
+def _serve_box(tmp_path, case, groups=None):
+    """The three-piece box of test_viewer_api as case `case` (with `groups` as its groups.json),
+    served: (truth, server, url)."""
     pytest.importorskip("playwright")
     from relicgpu.viewer.app import create_app, serve_in_thread
     from test_viewer_api import TruthPipeline, make_box_workspace
 
-    truth = make_box_workspace(tmp_path / "ws", case="heap")
-    objects = {"piece_0": 0, "piece_1": 1, "piece_2": 0}
-    (tmp_path / "ws" / "heap" / "groups.json").write_text(json.dumps(
-        {"version": 1, "method": "average", "fragments": [{"file": f"{n}.ply", "group": g} for n, g in objects.items()]}))
+    truth = make_box_workspace(tmp_path / "ws", case=case)
+    if groups is not None:
+        (tmp_path / "ws" / case / "groups.json").write_text(json.dumps(groups))
     pipe = TruthPipeline(truth)
     server, url = serve_in_thread(create_app(tmp_path / "ws", prepare=pipe.prepare, match_pair=pipe.match_pair))
+    return truth, server, url
+
+
+def test_object_groups_colour_and_list_the_fragments(browser, tmp_path):
+    """A case with a groups.json (`relicgpu group`): fragments coloured by object group, a legend
+    of the groups, each list row tagged with its object; 'colour by fragment' brings the fragment
+    colours back."""
+    objects = {"piece_0": 0, "piece_1": 1, "piece_2": 0}
+    _, server, url = _serve_box(tmp_path, "heap", groups={
+        "version": 1, "method": "average", "fragments": [{"file": f"{n}.ply", "group": g} for n, g in objects.items()]})
     try:
         pg = new_page(browser)
         pg.goto(url)
@@ -354,13 +362,7 @@ def test_colour_by_how_each_piece_is_held(browser, tmp_path):
     """'how it is held' colours an assembled case by support (relicgpu.heap.support): the box's
     three pieces joined by a chain of two used matches, so the middle one is in a chain and the two
     ends rest on one match each, tagged so in the list; with the third match used they all lie on a loop."""
-    pytest.importorskip("playwright")
-    from relicgpu.viewer.app import create_app, serve_in_thread
-    from test_viewer_api import TruthPipeline, make_box_workspace
-
-    truth = make_box_workspace(tmp_path / "ws", case="box")
-    pipe = TruthPipeline(truth)
-    server, url = serve_in_thread(create_app(tmp_path / "ws", prepare=pipe.prepare, match_pair=pipe.match_pair))
+    truth, server, url = _serve_box(tmp_path, "box")
     try:
         pg = new_page(browser)
         pg.goto(url)
