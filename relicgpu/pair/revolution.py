@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..backends.numpy import query_threads
+
 # the second-smallest eigenvalue of the axis's normal equations over the smallest: a skin that
 # turns about one axis holds it (clean vessel sherds 27-550, rescanned 3-50); at 8 one clean
 # corpus sherd whose roughness reading took its break for skin held a wrong axis (8.1)
@@ -79,7 +81,7 @@ def skin_axis(centres: np.ndarray, normals: np.ndarray, areas: np.ndarray, thin:
     moment = (normals * areas[:, None]).T @ normals / max(areas.sum(), 1e-300)
     if np.linalg.eigvalsh(moment)[1] < AXIS_TURN:
         return None
-    _, near = cKDTree(centres).query(centres, k=NEIGHBOURS)
+    _, near = cKDTree(centres).query(centres, k=NEIGHBOURS, workers=query_threads())
     around = normals[near]
     # a line has no sign: the two skins of a wall face apart, and must not cancel
     sign = np.sign(np.einsum("ikj,ij->ik", around, normals))
