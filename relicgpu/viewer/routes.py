@@ -133,8 +133,10 @@ def api_fragments(case_id):
     if objects is not None:
         notes.extend(objects.notes)
     where = {name: k for k, name in enumerate(entries)}
+    # (a match naming a fragment no longer in the workspace holds nothing here)
     used, on_loop = held_by(len(where), [(where[m["a"]], where[m["b"]]) for m in
-                                         (assembly.matches if assembly else []) if m["used"]])
+                                         (assembly.matches if assembly else [])
+                                         if m["used"] and m["a"] in where and m["b"] in where])
     frags = []
     for i, e in enumerate(entries.values()):
         pose = assembly.poses.get(e.name) if assembly else None
