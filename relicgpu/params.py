@@ -171,6 +171,10 @@ class Params:
     # (`planar.fit_score`), with no fit at another turn close (`cutfit.match_planes`), is
     # taken before the crease regions are tried (None: never)
     min_plane: float | None = 0.3
+    # clouds scanned without normals that nothing matched are matched once more with a thin wall's
+    # normals (`cloud.wall_normals`: each face's own, the break strip's between them); such a fit
+    # weighs `pipeline.SECOND_READING_SCORE` of its score in the assembly
+    wall_normals: bool = True
     outline_radius: float = 0.05
     outline_spread: float = 0.12
     # assembly: a verified match whose sharp creases meet the partner's (`verify.rim_agreement` of

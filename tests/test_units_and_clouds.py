@@ -503,6 +503,16 @@ def test_a_thin_walls_break_is_matched_on_its_bands():
         assert thin_pick(cloud_skin(f, sample)[0], sample, point_spacing(points)) is thin
 
 
+def test_a_thin_walls_cloud_without_normals_is_matched_with_the_walls_normals():
+    """A vessel's wall two point spacings thick, scanned without normals (the corpus's vessel-clean
+    seed 15): the usual estimate's planes span both faces and nothing is matched; with each face's
+    normals and the break strip's between them (`cloud.wall_normals`) the bands are."""
+    frags, truth = _corpus_cloud_pair("vessel-clean", 15, 15, with_normals=False)
+    result = match_pair(*frags, backend="numpy")
+    assert result.reason.endswith("(with a thin wall's normals; the clouds had none)"), result.reason
+    _assert_right(result, frags[1], truth)
+
+
 def test_a_thin_walls_fit_a_few_degrees_off_is_polished_home():
     """Two sherds of a 5-piece vessel (the corpus's vessel-clean seed 4, pieces 0 and 2) as clouds,
     started 3.3 degrees off: the usual skin gate holds nothing at first and the band alone polishes
