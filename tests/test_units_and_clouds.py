@@ -513,6 +513,16 @@ def test_a_thin_walls_cloud_without_normals_is_matched_with_the_walls_normals():
     _assert_right(result, frags[1], truth)
 
 
+def test_a_thin_walls_fit_without_normals_whose_axes_do_not_meet_is_refused():
+    """Vessel-clean seed 21 without normals: with the thin wall's normals its bands pass at a fit 23
+    degrees off, which carries one sherd's axis of revolution 22 degrees off the other's; refused
+    (the right fits so found keep the axes within 0.8-5.6 degrees)."""
+    frags, _ = _corpus_cloud_pair("vessel-clean", 21, 21, with_normals=False)
+    result = match_pair(*frags, backend="numpy")
+    assert not result.accepted
+    assert "with a thin wall's normals a fit refused: the two pieces' axes of revolution do not meet" in result.reason
+
+
 def test_a_thin_walls_fit_a_few_degrees_off_is_polished_home():
     """Two sherds of a 5-piece vessel (the corpus's vessel-clean seed 4, pieces 0 and 2) as clouds,
     started 3.3 degrees off: the usual skin gate holds nothing at first and the band alone polishes

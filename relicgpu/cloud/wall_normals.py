@@ -14,10 +14,11 @@ normals"). Here, for each point:
   `BETWEEN_MIN` points more than `BETWEEN_OFFSET` spacings to each side along the wall's normal
   lies between the two faces: it is the break strip, and takes the in-plane outward direction.
 
-On vessel-clean pairs without normals these normals, matched as if scanned, found 3 of pairs 0-11
-(the settings were chosen on them) and 9 of the held-out 12-39 where the usual estimate found none,
-4 of them wrong; on thick pieces they found nothing. So `pair.pipeline.match_pair` asks them last,
-for clouds without normals whose pair nothing else matched (`Params.wall_normals`).
+On vessel-clean pairs without normals these normals, matched as if scanned, found fits where the
+usual estimate found none (docs/benchmarks.md, "A thin wall's normals asked last"); on thick pieces
+they find nothing. So `pair.pipeline.match_pair` asks them last, for two clouds without normals
+that nothing else matched (`Params.wall_normals`), and refuses such a fit where it carries one
+piece's axis of revolution off the other's (`revolution.axes_meet`).
 """
 from __future__ import annotations
 

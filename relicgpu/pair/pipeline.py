@@ -31,6 +31,7 @@ from . import seam
 from .fine import fine_stage
 from .meshfit import BANDED, band_fit, skin_over_band, skin_pick, unseen_skin, verify_mesh
 from .sheets import crease_fit, sheet_fit
+from .revolution import axes_meet, skin_axis
 from .skinhold import held_by_skin, skin_continues
 from .verify import index_cache, rim_agreement
 
@@ -56,11 +57,6 @@ def _as_prepared(x, params, backend, scale) -> Prepared:
 # matches first and weighs these less in its votes (corpus voronoi-clean, 5 pieces: 5 wrong fits
 # of the second reading, scored alike with the right ones, split the object in two)
 SECOND_READING_SCORE = 0.5
-# A fit found with a thin wall's normals (`Params.wall_normals`) is kept where at least WALL_SKIN of
-# the free skin points near its seam continue the partner's (`seam.skin_points`): more than a thin
-# cut asks with scanned normals (`cloudmatch.THIN_PICK_SKIN`, whose right fits read 0.43-0.87).
-# Vessel-clean pairs 0-23 without normals: the right fits so found 0.44-0.83, the one wrong 0.31.
-WALL_SKIN = 0.4
 # a fit accepted on its outline with a residual over max_rmse, or on its rims facing too little
 # (`meshfit.band_fit`), is less sure: the assembly weighs it this much
 OUTLINE_SCORE = 0.5
@@ -100,11 +96,11 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     second = _match_readings(pa, pb, params, be, None, scale)
     if not second.accepted:
         return result
-    contact = cloud_params(params, (pa.fragment, pb.fragment), scale).contact_distance * scale
-    continues, near = seam.skin_points(pa.sample, pb.sample, second.transform, contact, scale)
-    if continues < WALL_SKIN * near:
-        return replace(result, reason=f"{result.reason}; with a thin wall's normals a fit whose skin continues the "
-                                      f"partner's at {continues} of {near} points near the seam")
+    # such normals hold a vessel's axis of revolution; its sherds share one (`revolution`, as meshes are asked)
+    axes = [skin_axis(p.fragment.vertices, p.fragment.normals, np.ones(len(p.fragment.vertices))) for p in (pa, pb)]
+    apart = axes_meet(*axes, second.transform, scale, params.axis_apart)
+    if apart is not None:
+        return replace(result, reason=f"{result.reason}; with a thin wall's normals a fit refused: {apart}")
     return replace(second, score=SECOND_READING_SCORE * second.score,
                    reason=f"{second.reason} (with a thin wall's normals; the clouds had none)")
 
