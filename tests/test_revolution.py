@@ -139,3 +139,39 @@ def test_a_jars_piece_laid_on_a_piece_it_does_not_touch_is_refused():
     assert not a.sample.axis.thin and firm(a.sample.axis, scale)
     assert match_pair(a, b, params.with_(axis_apart=None), be, scale=scale).accepted
     assert not match_pair(a, b, params, be, scale=scale).accepted
+
+
+def _wall_band(z0, z1, slope, rng, n=1500):
+    """(points, normals) of both skins of a wall 0.03 thick about the z axis, turns 0-1.4 radians,
+    heights z0-z1, its radius 0.5 + slope * z (normals with about 2 degrees of noise)."""
+    t, z = rng.uniform(0.0, 1.4, n), rng.uniform(z0, z1, n)
+    outer = rng.random(n) < 0.5
+    r = 0.5 + slope * z - np.where(outer, 0.0, 0.03)
+    points = np.c_[r * np.cos(t), r * np.sin(t), z]
+    normals = np.c_[np.cos(t), np.sin(t), np.full(n, -slope)] * np.where(outer, 1.0, -1.0)[:, None]
+    normals += 0.03 * rng.normal(size=normals.shape)
+    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def test_a_sherd_laid_upside_down_is_told_by_its_wall_s_tilt():
+    """Two sherds of a wall broken across (a above z = 0, b below), as clouds matched on a thin wall's
+    normals: at the true pose their walls tilt alike beside the seam; b turned half a turn about the
+    wall's normal keeps the axis but tilts the other way; a cylinder's wall tilts neither way, so up
+    and down fit alike there."""
+    from relicgpu.pair.revolution import profiles_agree
+
+    rng = np.random.default_rng(3)
+    for slope, truth_ok in ((0.4, True), (0.0, False)):
+        a, b = _wall_band(0.0, 0.4, slope, rng), _wall_band(-0.4, 0.0, slope, rng)
+        axes = [skin_axis(p, n, np.full(len(p), 1.0)) for p, n in (a, b)]
+        assert all(firm(x, 1.0) for x in axes)
+        at_truth = profiles_agree(*a, axes[0], *b, axes[1], np.eye(4), 1.0)
+        assert (at_truth is None) == truth_ok, at_truth
+        if truth_ok:
+            radial = np.array([np.cos(0.7), np.sin(0.7), 0.0])
+            flip = np.eye(4)
+            flip[:3, :3] = axis_rotation(radial, np.pi)  # about the wall's normal, through the axis
+            turned = profiles_agree(*a, axes[0], *b, axes[1], flip, 1.0)
+            assert turned is not None and "laid upside down" in turned, turned
+        else:
+            assert "runs along its axis" in at_truth

@@ -172,10 +172,10 @@ def profiles_agree(a_points, a_normals, a_axis: Axis | None, b_points, b_normals
     tilt_a = profile_tilt(a_points, a_normals, a_axis, near_a)
     # read in a's sense of the axis
     tilt_b = profile_tilt(moved, b_normals @ transform[:3, :3].T, moved_axis, near_b) * np.sign(direction @ a_axis.direction)
-    if tilt_a * tilt_b < 0:
-        return (f"the wall tilts one way beside the seam and the other way across it ({tilt_a:+.2f}, "
-                f"{tilt_b:+.2f}): laid upside down")
     if max(abs(tilt_a), abs(tilt_b)) < PROFILE_TILT:
         return (f"the wall runs along its axis beside the seam (tilts {tilt_a:+.2f} and {tilt_b:+.2f}): "
                 f"laid upside down it would fit alike")
+    if tilt_a * tilt_b < 0:
+        return (f"the wall tilts one way beside the seam and the other way across it ({tilt_a:+.2f}, "
+                f"{tilt_b:+.2f}): laid upside down")
     return None
