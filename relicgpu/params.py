@@ -173,8 +173,8 @@ class Params:
     min_plane: float | None = 0.3
     # clouds scanned without normals that nothing matched are matched once more with a thin wall's
     # normals (`cloud.wall_normals`: each face's own, the break strip's between them); such a fit is
-    # refused where the pieces' axes of revolution do not meet, and weighs
-    # `pipeline.SECOND_READING_SCORE` of its score in the assembly
+    # refused where the pieces' axes of revolution do not meet or their walls tilt apart (a sherd
+    # laid upside down), and weighs `pipeline.SECOND_READING_SCORE` of its score in the assembly
     wall_normals: bool = True
     outline_radius: float = 0.05
     outline_spread: float = 0.12

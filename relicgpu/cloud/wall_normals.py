@@ -18,7 +18,8 @@ On vessel-clean pairs without normals these normals, matched as if scanned, foun
 usual estimate found none (docs/benchmarks.md, "A thin wall's normals asked last"); on thick pieces
 they find nothing. So `pair.pipeline.match_pair` asks them last, for two clouds without normals
 that nothing else matched (`Params.wall_normals`), and refuses such a fit where it carries one
-piece's axis of revolution off the other's (`revolution.axes_meet`).
+piece's axis of revolution off the other's (`revolution.axes_meet`) or lays a sherd upside down
+(`revolution.profiles_agree`).
 """
 from __future__ import annotations
 

@@ -170,8 +170,8 @@ def profiles_agree(a_points, a_normals, a_axis: Axis | None, b_points, b_normals
     direction = transform[:3, :3] @ b_axis.direction
     moved_axis = Axis(direction, transform[:3, :3] @ b_axis.foot + transform[:3, 3], b_axis.held)
     tilt_a = profile_tilt(a_points, a_normals, a_axis, near_a)
-    # read in a's sense of the axis
-    tilt_b = profile_tilt(moved, b_normals @ transform[:3, :3].T, moved_axis, near_b) * np.sign(direction @ a_axis.direction)
+    tilt_b = profile_tilt(moved, b_normals @ transform[:3, :3].T, moved_axis, near_b)
+    tilt_b *= np.sign(direction @ a_axis.direction)  # read in a's sense of the axis
     if max(abs(tilt_a), abs(tilt_b)) < PROFILE_TILT:
         return (f"the wall runs along its axis beside the seam (tilts {tilt_a:+.2f} and {tilt_b:+.2f}): "
                 f"laid upside down it would fit alike")
