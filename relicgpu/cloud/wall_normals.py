@@ -39,8 +39,7 @@ def wall_normals(points: np.ndarray) -> np.ndarray:
     p = np.asarray(points, np.float64)
     n = len(p)
     k = min(SHEET, n)
-    tree = cKDTree(p)
-    dist, idx = tree.query(p, k=k)
+    dist, idx = cKDTree(p).query(p, k=k)
     q = p[idx]
     centre = q.mean(axis=1)
     d = q - centre[:, None]
@@ -57,7 +56,7 @@ def wall_normals(points: np.ndarray) -> np.ndarray:
     length = np.linalg.norm(wall, axis=1)
     wall = np.where(length[:, None] > 0, wall / np.maximum(length, 1e-300)[:, None], sheet)
     normals = wall * np.where(along < 0, -1.0, 1.0)[:, None]
-    strip = (edge > EDGE) & (_between(p, tree, wall) >= BETWEEN_MIN)
+    strip = (edge > EDGE) & (_between(p, dist, idx, wall) >= BETWEEN_MIN)
     outward = inplane - np.einsum("ij,ij->i", inplane, wall)[:, None] * wall
     size = np.linalg.norm(outward, axis=1)
     strip &= size > 0
@@ -65,10 +64,11 @@ def wall_normals(points: np.ndarray) -> np.ndarray:
     return normals
 
 
-def _between(points: np.ndarray, tree: cKDTree, wall: np.ndarray) -> np.ndarray:
+def _between(points: np.ndarray, dist: np.ndarray, idx: np.ndarray, wall: np.ndarray) -> np.ndarray:
     """(N,) how many of each point's `BETWEEN` nearest lie more than `BETWEEN_OFFSET` spacings to
-    its one side along the (N, 3) wall normals, counted on the side that holds fewer."""
-    dist, idx = tree.query(points, k=min(BETWEEN, len(points)))
+    its one side along the (N, 3) wall normals, counted on the side that holds fewer. `dist`, `idx`:
+    (N, K) each point's K >= `BETWEEN` nearest (itself first), ascending, as cKDTree gives them."""
+    dist, idx = dist[:, :BETWEEN], idx[:, :BETWEEN]
     nearest = dist[:, 1] if dist.shape[1] > 1 else dist[:, 0]
     spacing = float(np.median(nearest[nearest > 0])) if np.any(nearest > 0) else 0.0
     offset = np.einsum("nkd,nd->nk", points[idx] - points[:, None], wall)
