@@ -20,7 +20,9 @@ cylinder, third-party: fractures this project did not make). --kinds keeps some 
 kinds (pair k is then kinds[k % len] of seed k // len). Each piece becomes --points points drawn
 from its surface (seed 100 k + i) with Gaussian noise of --noise times the piece's size, with the
 true normals (`normals`), with none (`none`), as the mesh itself with three holes cut into its skin
-(`open`), or as the closed mesh itself (`mesh`). A pair is right when `match_pair` accepts it with a
+(`open`), or as the closed mesh itself (`mesh`); `normals-file` and `none-file` write the cloud to an
+.xyz file and read it back with `load_fragment`, as `relicgpu match` and `assemble` read a user's
+cloud (a cloud that closes into a solid may come back meshed). A pair is right when `match_pair` accepts it with a
 rotation error under 2 degrees and the moved piece's points within 1% RMS of their true place,
 lengths relative to the object's size (the largest side of its assembled bounding box). A pair
 accepted at a wrong pose is counted apart: it is worse than a miss. The summary gives each mode's
@@ -41,6 +43,7 @@ SHAPES = ("vase", "torso", "slab")
 
 
 CORPUS = ("rough-clean", "smooth-clean", "voronoi-clean", "vessel-clean")
+MODES = ("normals", "none", "normals-file", "none-file", "open", "mesh")
 
 
 def source_kinds(source: str, kinds: str = "") -> tuple[str, ...]:
@@ -96,8 +99,24 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
             continue
         p, fi = trimesh.sample.sample_surface(m, points, seed=100 * k + i)
         p = p + np.random.default_rng(7 * k + i).normal(size=p.shape) * noise * f.size
-        frags.append(cloud_fragment(f.name, p, m.face_normals[fi] if mode == "normals" else None))
+        normals = m.face_normals[fi] if mode.startswith("normals") else None
+        frags.append(_through_a_file(f.name, p, normals) if mode.endswith("-file")
+                     else cloud_fragment(f.name, p, normals))
     return frags[0], frags[1], truth
+
+
+def _through_a_file(name: str, points: np.ndarray, normals):
+    """The cloud written to NAME.xyz (with its normals as three more columns) and read back by
+    `load_fragment`."""
+    import tempfile
+    from pathlib import Path
+
+    from relicgpu.io.load import load_fragment
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / f"{name}.xyz"
+        np.savetxt(path, points if normals is None else np.c_[points, normals])
+        return load_fragment(path, name=name)
 
 
 def _cut_holes(fragment, fracture: np.ndarray, rng, holes: int = 3, radius: float = 0.06):
@@ -170,7 +189,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=int, default=10)
     ap.add_argument("--first", type=int, default=0, help="index of the first pair")
-    ap.add_argument("--modes", default="normals,none", help="comma list of normals, none, open, mesh")
+    ap.add_argument("--modes", default="normals,none", help=f"comma list of {', '.join(MODES)}")
     ap.add_argument("--points", type=int, default=2500)
     ap.add_argument("--noise", type=float, default=0.0005)
     ap.add_argument("--source", choices=["synth", "corpus", "thin", "realdata"], default="synth")
@@ -185,6 +204,9 @@ def main(argv=None) -> int:
         changes = parse_assignments(args.set)
     except ValueError as err:
         ap.error(f"--set {err}")
+    unknown = [m for m in args.modes.split(",") if m not in MODES]
+    if unknown:
+        ap.error(f"--modes: unknown {', '.join(unknown)}; choose from {', '.join(MODES)}")
     try:
         source_kinds(args.source, args.kinds)
     except ValueError as err:

@@ -132,7 +132,7 @@ def test_pcd_organised_cloud_drops_nan_pixels(tmp_path):
 
 
 def test_ply_point_clouds_ascii_and_binary_go_through_load_fragment(tmp_path):
-    pts, nrm = sphere_points(3000)
+    pts, nrm = sphere_points(pc.MATCH_POINTS)
     header = ("ply\nformat {fmt} 1.0\ncomment points only\nelement vertex {n}\nproperty float x\nproperty float y\n"
               "property float z\nproperty float nx\nproperty float ny\nproperty float nz\nelement face 0\n"
               "property list uchar int vertex_indices\nend_header\n")
@@ -148,7 +148,21 @@ def test_ply_point_clouds_ascii_and_binary_go_through_load_fragment(tmp_path):
     frag = load_fragment(tmp_path / "b.ply")
     assert frag.name == "b" and len(frag.faces) > 0
     assert is_watertight(frag.faces) and count_bodies(frag.vertices, frag.faces) == 1
-    assert any("triangulated 3000 points" in n for n in frag.notes)
+    assert any(f"triangulated {pc.MATCH_POINTS} points" in n for n in frag.notes)
+
+
+def test_a_sparse_cloud_is_matched_on_its_points_and_keeps_its_normals(tmp_path):
+    """Fewer points than a mesh for matching needs: not meshed, though it closes (a sphere)."""
+    from relicgpu.cloud.points import CloudFragment
+
+    for n in (3000, pc.MATCH_POINTS - 1):
+        pts, nrm = sphere_points(n)
+        np.savetxt(tmp_path / "s.xyz", np.hstack([pts, nrm]))
+        frag = load_fragment(tmp_path / "s.xyz")
+        assert isinstance(frag, CloudFragment) and len(frag.faces) == 0 and len(frag.vertices) == n
+        assert np.allclose(frag.normals, nrm)
+        assert any(f"{n} points, fewer than the {pc.MATCH_POINTS}" in m and "and their normals" in m
+                   for m in frag.notes), frag.notes
 
 
 def test_npy_points_and_points_with_normals(tmp_path):

@@ -33,7 +33,7 @@ CASES = [
     ("bench_group.py", "--fit 16 --fit-corpus voronoi-coarse rough-coarse --fit-corpus-seeds 0 1 --cache '' "
      "--describe-cache {tmp}/described", "described/rough-coarse_1.pkl"),
     ("bench_mosaic.py", "--pairs 1 --json {tmp}/mosaic.json", "mosaic.json"),
-    ("bench_clouds.py", "--pairs 1 --first 2 --modes normals,open,mesh --json {tmp}/clouds.json", "clouds.json"),
+    ("bench_clouds.py", "--pairs 1 --first 2 --modes normals,normals-file,open,mesh --json {tmp}/clouds.json", "clouds.json"),
     ("bench_clouds.py", "--pairs 2 --first 2 --modes normals --workers 2 --json {tmp}/clouds.json", "clouds.json"),
     ("bench_clouds.py", "--source thin --kinds shelf04-flat --pairs 1 --modes normals --json {tmp}/thin.json",
      "thin.json"),

@@ -622,6 +622,28 @@ def _thin_cloud_pair(family, seed, k, noise=0.0005):
     return clouds, np.linalg.inv(r.poses[0]) @ r.poses[1], labels
 
 
+def test_a_bookshelf_s_sparse_clouds_in_files_are_matched_on_their_points_and_normals(tmp_path, capsys):
+    """Two 2,500-point clouds of a bookshelf cut flat, with their scan normals, as a user gives them:
+    meshed, such a cloud closed into a slab the segmentation misread, and its normals were dropped
+    (0 of 18 thin pairs right that way). Read as points with their normals, the pair is matched."""
+    import json
+
+    from relicgpu.cli import main
+
+    (a, b), truth, _ = _thin_cloud_pair("shelf04-flat", 0, 3)
+    paths = []
+    for f in (a, b):
+        paths.append(tmp_path / f"{f.name}.xyz")
+        np.savetxt(paths[-1], np.c_[f.vertices, f.normals])
+    assert main(["match", *map(str, paths), "-o", str(tmp_path / "m"), "--backend", "numpy"]) == 0
+    assert "2500 points, fewer than the 12000 a mesh for matching needs; matched on its points and their normals" \
+        in capsys.readouterr().err
+    doc = json.loads((tmp_path / "m" / "match.json").read_text())
+    assert doc["accepted"], doc["reason"]
+    rot, rms = _pose_gap(np.array(doc["transform"]), truth, b.vertices)
+    assert rot < 2.0 and rms < 0.01 * b.size, (rot, rms)
+
+
 def test_two_boards_front_edges_laid_on_each_other_are_no_thin_cut():
     """A bookshelf of boards 0.02 thick cut rough: its boards' front edges pick as bands as its
     break does, and were accepted laid on each other, half a turn off (`thin_wall_fit`). Their

@@ -91,6 +91,10 @@ SPLIT_NUDGE = 0.1
 DENSE_POINTS = 100_000
 MATCH_FACES = 24_000
 MATCH_POINTS = MATCH_FACES // 2
+# A cloud of fewer than MATCH_POINTS points would make a mesh coarser than that density: it is
+# matched on its points, with the normals it was scanned with. Meshed, a sparse thin board's cloud
+# closes into a slab the segmentation misreads, and the scan's normals are lost (2,500 points a
+# piece, docs/benchmarks.md "Sparse clouds matched on their points").
 
 
 @dataclass(frozen=True)
@@ -363,11 +367,16 @@ def load_point_cloud_fragment(path, name: str | None = None, *, max_points: int 
                               faces: int = MATCH_FACES, alpha_factor: float = ALPHA_FACTOR,
                               progress: bool = False) -> Fragment:
     """Read a point-cloud file and mesh it for matching (`mesh_for_matching`) into a checked
-    Fragment (called by relicgpu.io.load_fragment); a cloud that does not close into a solid
-    becomes a CloudFragment, matched on its points. `relicgpu mesh` makes a finer mesh to keep.
+    Fragment (called by relicgpu.io.load_fragment); a cloud of fewer than MATCH_POINTS points, or
+    one that does not close into a solid, becomes a CloudFragment, matched on its points.
+    `relicgpu mesh` makes a mesh of any cloud to keep.
     """
     p = Path(path)
     cloud = read_point_cloud(p)
+    if len(cloud.points) < MATCH_POINTS:
+        why = (f"{p}: {len(cloud.points)} points, fewer than the {MATCH_POINTS} a mesh for matching needs; "
+               f"matched on its points{'' if cloud.normals is None else ' and their normals'}")
+        return cloud_fragment(name or p.stem, cloud.points, cloud.normals, str(p), cloud.notes + (why,))
     try:
         result = mesh_for_matching(cloud.points, max_points=max_points, faces=faces, alpha_factor=alpha_factor,
                                    progress=progress, label=str(p))
