@@ -184,6 +184,27 @@ def test_cli_group_skips_and_records(pair_dir, tmp_path, capsys):
     assert doc["notes"]
 
 
+def test_cli_group_describes_a_sparse_cloud_by_its_surface_and_skips_one_with_none(tmp_path, capsys):
+    """A sparse cloud is matched on its points, but grouped on the surface it closes into; a cloud
+    that closes into no solid (an open sheet) is left out of the groups, and said so."""
+    d = tmp_path / "heap"
+    d.mkdir()
+    r = synth.generate("vase", pieces=2, seed=3, faces=600, progress=False)
+    a, b = r.fragments
+    a.to_trimesh().export(d / "a.ply")
+    points, _ = trimesh.sample.sample_surface(b.to_trimesh(), 2500, seed=0)
+    np.savetxt(d / "b.xyz", points)
+    sheet = np.c_[np.random.default_rng(0).uniform(size=(2500, 2)), np.zeros(2500)]
+    np.savetxt(d / "sheet.xyz", sheet)
+    assert main(["group", str(d), "-o", str(tmp_path / "g"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "sheet.xyz" in err and "not grouped" in err
+    doc = json.loads((tmp_path / "g" / "groups.json").read_text())
+    assert sorted(f["name"] for f in doc["fragments"]) == ["a", "b"]
+    assert [s["file"] for s in doc["skipped"]] == ["sheet.xyz"]
+    assert any("matched on its points" in n for n in doc["notes"])
+
+
 def test_cli_match_uses_the_largest_body_and_stops_on_unreadable(pair_dir, tmp_path, capsys):
     out = tmp_path / "m"
     assert main(["match", str(pair_dir / "a.ply"), str(pair_dir / "b.ply"), "-o", str(out),

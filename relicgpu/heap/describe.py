@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from ..backends import resolve
-from ..io.fragment import Fragment, FragmentError
+from ..cloud.triangulate import mesh_for_matching
+from ..io.fragment import Fragment, FragmentError, fragment_from_arrays, is_cloud
 from ..params import Params
 from ..pair.segment import segment
 from ..pair.verify import vertex_normals
@@ -141,8 +142,20 @@ def _grouping_params(params) -> "Params":
     return dataclasses.replace(params or Params(), segmentation="regions")
 
 
+def surface_of(fragment: Fragment) -> Fragment:
+    """The fragment, or a point cloud's surface meshed as a dense cloud is for matching
+    (`triangulate.mesh_for_matching`): the descriptors read a surface, which a sparse cloud matched
+    on its points still has where it closes. FragmentError where it does not close into a solid."""
+    if not is_cloud(fragment):
+        return fragment
+    label = fragment.source or fragment.name
+    mesh = mesh_for_matching(fragment.vertices, label=label)
+    return fragment_from_arrays(fragment.name, mesh.vertices, mesh.faces, source=fragment.source)
+
+
 def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None) -> Descriptor:
-    """The breakage-surviving descriptors of one fragment."""
+    """The breakage-surviving descriptors of one fragment (a point cloud's: of `surface_of` it)."""
+    fragment = surface_of(fragment)
     v = np.asarray(fragment.vertices, np.float64)
     f = np.asarray(fragment.faces, np.int64)
     if len(f) < 4:

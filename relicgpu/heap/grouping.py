@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .describe import Descriptor, FEATURE_NAMES, GAP_NAMES, GAP_SCALES, describe_all
+from .describe import Descriptor, FEATURE_NAMES, GAP_NAMES, GAP_SCALES, describe_all, surface_of
 
 from ..io.fragment import Fragment, FragmentError
 from ..io.load import Batch, read_batch
@@ -307,13 +307,21 @@ def group_fragments(fragments: list[Fragment], n_groups: int | None = None, dist
     if not fragments:
         raise FragmentError("no fragments to group")
     t0 = time.perf_counter()
-    desc = describe_all(fragments, params, progress)
+    surfaces, skipped = [], []
+    for fr in fragments:  # a point cloud that does not close has no surface to describe: left out, said so
+        try:
+            surfaces.append(surface_of(fr))
+        except FragmentError as exc:
+            skipped.append({"file": fr.file, "reason": f"{exc}; not grouped"})
+    if not surfaces:
+        raise FragmentError(f"no fragments to group ({skipped[0]['reason']})")
+    desc = describe_all(surfaces, params, progress)
     t1 = time.perf_counter()
     p = heap_probability(desc)
     labels, sil = cluster(1.0 - p, n_groups, LINK_CUT if distance is None else distance)
     t2 = time.perf_counter()
-    return Grouping([fr.name for fr in fragments], labels, sil, {}, "average",
-                    {"describe": t1 - t0, "cluster": t2 - t1}, [fr.file for fr in fragments])
+    return Grouping([fr.name for fr in surfaces], labels, sil, {}, "average",
+                    {"describe": t1 - t0, "cluster": t2 - t1}, [fr.file for fr in surfaces], skipped)
 
 
 def heap_probability(descriptors: list[Descriptor]) -> np.ndarray:

@@ -38,7 +38,7 @@ def assemble_grouped(fragments_or_dir, out_dir=None, n_groups: int | None = None
                             float("nan"), method="classifier", files=[fr.file for fr in fragments])
     else:
         grouping = group_fragments(fragments, n_groups)
-    grouping = dataclasses.replace(grouping, skipped=list(batch.skipped), notes=list(batch.notes))
+    grouping = dataclasses.replace(grouping, skipped=list(batch.skipped) + grouping.skipped, notes=list(batch.notes))
     by_name = {fr.name: fr for fr in fragments}
     results, doc_fragments, doc_matches, timings = [], [], [], {}
     offset = 0
@@ -239,10 +239,12 @@ def _group_main(args, name) -> int:
         if args.distance is not None and not 0.0 < args.distance < 1.0:
             raise CliError(f"--distance must lie between 0 and 1, got {args.distance}")
         doc = group_fragments(fragments, args.groups, args.distance, progress=not args.quiet).to_dict()
-    doc.update(skipped=batch.skipped, notes=batch.notes)
+    for line in grouped_lines("skipped", [s["reason"] for s in doc.get("skipped", [])]):  # clouds with no surface
+        print(line, file=sys.stderr)
+    doc.update(skipped=batch.skipped + doc.get("skipped", []), notes=batch.notes)
     atomic_write_json(Path(args.out) / "groups.json", doc)
     sizes = [len(x) for x in doc["groups"]]
-    log(f"{len(fragments)} fragments in {len(sizes)} group(s) of sizes {sizes}; wrote {Path(args.out) / 'groups.json'}")
+    log(f"{sum(sizes)} fragments in {len(sizes)} group(s) of sizes {sizes}; wrote {Path(args.out) / 'groups.json'}")
     return 0
 
 
