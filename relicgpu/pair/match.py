@@ -16,6 +16,7 @@ from ..backends import BackendError, resolve
 from ..errors import CliError
 from ..io.files import atomic_write_bytes, atomic_write_json, ensure_not_input, grouped_lines
 from ..io.load import load_fragment
+from ..io.fragment import is_cloud
 from ..io.glb import scene_glb
 from ..params import Params
 from .pipeline import match_pair, pair_scale
@@ -42,7 +43,7 @@ def cli_main(args) -> int:
     b = load_fragment(args.b)
     for line in grouped_lines("note", list(a.notes + b.notes)):
         log(line)
-    log(f"loaded {a.name} ({len(a.vertices)} vertices) and {b.name} ({len(b.vertices)} vertices) in {time.perf_counter() - t0:.2f} s")
+    log(f"loaded {a.name} ({_size(a)}) and {b.name} ({_size(b)}) in {time.perf_counter() - t0:.2f} s")
     try:
         backend = resolve(args.backend)
     except BackendError as exc:
@@ -52,7 +53,8 @@ def cli_main(args) -> int:
     log(f"backend {backend.name}; preparing fragments ...")
     pa = prepare(a, params, backend, scale=scale)
     pb = prepare(b, params, backend, scale=scale)
-    log(f"  {a.name}: {len(pa.contours)} fracture contours; {b.name}: {len(pb.contours)}")
+    if not (is_cloud(a) or is_cloud(b)):  # a cloud is matched on its points: it has no contours
+        log(f"  {a.name}: {len(pa.contours)} fracture contours; {b.name}: {len(pb.contours)}")
     result = match_pair(pa, pb, params, backend, scale=scale)
     for stage, t in {**pa.timings, **result.timings}.items():
         log(f"  {stage:>18}: {1000 * t:8.1f} ms")
@@ -64,6 +66,10 @@ def cli_main(args) -> int:
     atomic_write_bytes(out / "match.glb", pair_glb(a, b, result.transform if result.accepted else np.eye(4)))
     log(f"wrote {out / 'match.json'} and {out / 'match.glb'}")
     return 0
+
+
+def _size(fragment) -> str:
+    return f"{len(fragment.vertices)} {'points' if is_cloud(fragment) else 'vertices'}"
 
 
 def pair_glb(a, b, transform: np.ndarray) -> bytes:
