@@ -10,7 +10,7 @@
     python scripts/bench_clouds.py --source corpus --kinds vessel-clean --pairs 48   # one family, seeds 0-47
     python scripts/bench_clouds.py --source realdata --pairs 20         # Blender shards, touching pairs 0-9 of each set
 
-Pair k is relicgpu.synth's two-piece {vase, torso, slab}[k % 3] of seed k // 3 (4,000 faces,
+Pair k is relicgpu.synth's two-piece {vase, torso, slab}[k % 3] of seed k // 3 (4,000 faces or --faces,
 scanner noise 0.05% of the size); with --source corpus the clean two-piece object of
 relicgpu.synth.corpus family {rough, smooth, voronoi, vessel}-clean [k % 4] of seed k // 4; with
 --source thin relicgpu.synth.thin's family [k % 9] ({shelf02, shelf04, plant} x {flat, smooth,
@@ -69,8 +69,10 @@ def pair_name(k: int, source: str, kinds: str = "") -> str:
     return ("%s pair %d" if source == "realdata" else "%s seed %d") % pair_case(k, source, kinds)
 
 
-def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth", kinds: str = ""):
-    """The two fragments of pair k in `mode` and the truth carrying b onto a."""
+def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth", kinds: str = "",
+              faces: int = 4000):
+    """The two fragments of pair k in `mode` and the truth carrying b onto a (synth and corpus
+    objects made of about `faces` faces)."""
     import trimesh
 
     from relicgpu import synth
@@ -79,13 +81,13 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
 
     kind, seed = pair_case(k, source, kinds)
     if source == "corpus":
-        r = corpus.generate(kind, pieces=2, seed=seed, faces=4000)
+        r = corpus.generate(kind, pieces=2, seed=seed, faces=faces)
     elif source == "thin":
         r = thin.generate(kind, seed=seed)
     elif source == "realdata":
         r = corpus.realdata(kind, seed=0)
     else:
-        r = synth.generate(kind, pieces=2, seed=seed, faces=4000, noise=0.0005, progress=False)
+        r = synth.generate(kind, pieces=2, seed=seed, faces=faces, noise=0.0005, progress=False)
     pieces = r.touching[seed] if source == "realdata" else (0, 1)
     truth = np.linalg.inv(r.poses[pieces[0]]) @ r.poses[pieces[1]]
     frags = []
@@ -148,7 +150,7 @@ def score(a, b, truth, transform) -> tuple[float, float]:
 
 
 def run_pair(k: int, mode: str, points: int, noise: float, source: str, backend: str,
-             changes: dict | None = None, kinds: str = "") -> dict:
+             changes: dict | None = None, kinds: str = "", faces: int = 4000) -> dict:
     """match_pair on pair k in `mode` with Params changed by `changes`, scored (a row of the JSON). A pair
     that cannot be made or matched is a row too, not accepted, its reason "error: ..." (the run goes on)."""
     from relicgpu import match_pair
@@ -156,7 +158,7 @@ def run_pair(k: int, mode: str, points: int, noise: float, source: str, backend:
     t0 = time.perf_counter()
     row = {"mode": mode, "pair": k, "case": pair_name(k, source, kinds)}
     try:
-        a, b, truth = make_pair(k, mode, points, noise, source, kinds)
+        a, b, truth = make_pair(k, mode, points, noise, source, kinds, faces)
         t0 = time.perf_counter()
         m = match_pair(a, b, Params().with_(**(changes or {})), backend=backend)
     except Exception as err:  # noqa: BLE001 - one pair's fault is reported in its row
@@ -192,6 +194,9 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", default="normals,none", help=f"comma list of {', '.join(MODES)}")
     ap.add_argument("--points", type=int, default=2500)
     ap.add_argument("--noise", type=float, default=0.0005)
+    ap.add_argument("--faces", type=int, default=4000,
+                    help="faces of the synth and corpus objects the clouds are drawn off (a cloud denser than "
+                         "its mesh repeats each facet's normal)")
     ap.add_argument("--source", choices=["synth", "corpus", "thin", "realdata"], default="synth")
     ap.add_argument("--kinds", default="", help="comma list of the source's shapes or families to cycle through")
     ap.add_argument("--backend", default="numpy")
@@ -212,7 +217,7 @@ def main(argv=None) -> int:
     except ValueError as err:
         ap.error(f"--kinds: {err}")
 
-    jobs = [(k, mode, args.points, args.noise, args.source, args.backend, changes, args.kinds)
+    jobs = [(k, mode, args.points, args.noise, args.source, args.backend, changes, args.kinds, args.faces)
             for mode in args.modes.split(",") for k in range(args.first, args.first + args.pairs)]
     rows = []
 
