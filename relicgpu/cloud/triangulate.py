@@ -94,7 +94,7 @@ MATCH_POINTS = MATCH_FACES // 2
 # A cloud of fewer than MATCH_POINTS points would make a mesh coarser than that density: it is
 # matched on its points, with the normals it was scanned with. Meshed, a sparse thin board's cloud
 # closes into a slab the segmentation misreads, and the scan's normals are lost (2,500 points a
-# piece, docs/benchmarks.md "Sparse clouds matched on their points").
+# piece, docs/benchmarks.md "Sparse clouds in files").
 
 
 @dataclass(frozen=True)
