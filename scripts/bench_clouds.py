@@ -49,10 +49,11 @@ MODES = ("normals", "none", "normals-file", "none-file", "open", "mesh")
 def source_kinds(source: str, kinds: str = "") -> tuple[str, ...]:
     """The shapes or families that pairs cycle through: all of `source`'s, or those of the comma list `kinds`."""
     from relicgpu.synth import thin
-    from relicgpu.synth.corpus import REALDATA_SETS
+    from relicgpu.synth.corpus import FAMILIES, REALDATA_SETS
 
-    every = {"synth": SHAPES, "corpus": CORPUS, "thin": thin.FAMILIES, "realdata": REALDATA_SETS}[source]
-    chosen = tuple(k for k in kinds.split(",") if k) or every
+    default = {"synth": SHAPES, "corpus": CORPUS, "thin": thin.FAMILIES, "realdata": REALDATA_SETS}[source]
+    every = FAMILIES if source == "corpus" else default
+    chosen = tuple(k for k in kinds.split(",") if k) or default
     unknown = [k for k in chosen if k not in every]
     if unknown:
         raise ValueError(f"unknown {source} kinds {', '.join(unknown)}; choose from {', '.join(every)}")
@@ -198,7 +199,8 @@ def main(argv=None) -> int:
                     help="faces of the synth and corpus objects the clouds are drawn off (a cloud denser than "
                          "its mesh repeats each facet's normal)")
     ap.add_argument("--source", choices=["synth", "corpus", "thin", "realdata"], default="synth")
-    ap.add_argument("--kinds", default="", help="comma list of the source's shapes or families to cycle through")
+    ap.add_argument("--kinds", default="", help="comma list of the source's shapes or families to cycle through "
+                    "(corpus: any of its twelve families, e.g. rough-noisy; default its clean ones)")
     ap.add_argument("--backend", default="numpy")
     ap.add_argument("--workers", type=int, default=1, help="pairs matched at once, a process each")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",

@@ -286,7 +286,7 @@ def test_merged_stl_caps_holes_and_says_what_it_could_not_close():
     box = fragment_from_arrays_quiet("box", _box().vertices, _box().faces)
     # a strip: its boundary is not a set of simple loops, so it cannot be capped into a solid
     strip = fragment_from_arrays_quiet("strip", [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], [[0, 1, 2], [1, 3, 2]])
-    cloud = cloud_fragment("pts", np.random.default_rng(0).normal(size=(50, 3)))
+    cloud = cloud_fragment("pts", np.c_[np.random.default_rng(0).normal(size=(50, 2)), np.zeros(50)])  # flat: no solid
     shift = np.eye(4)
     shift[:3, 3] = [5, 0, 0]
     v, f, notes = merged_solid([open_sphere, box], [np.eye(4), shift])
@@ -304,7 +304,28 @@ def test_merged_stl_caps_holes_and_says_what_it_could_not_close():
     v, f, notes = merged_solid([box, strip, cloud], [np.eye(4), shift, shift])
     assert len(f) == 12 + 2 and not trimesh.Trimesh(v, f, process=False).is_watertight
     assert any(n.startswith("strip: ") and "not watertight" in n for n in notes)
-    assert any(n.startswith("pts: a point cloud") for n in notes)
+    assert any(n.startswith("pts: a point cloud (no faces); left out of merged.stl (") for n in notes), notes
+
+
+def test_merged_stl_holds_the_surface_a_point_cloud_closes_into():
+    """A cloud matched on its points (scanned with normals) is meshed for merged.stl, as it would
+    have been meshed for matching."""
+    from relicgpu.heap.outputs import merged_solid
+    from relicgpu.cloud.points import cloud_fragment
+
+    d = np.random.default_rng(1).normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    ball = cloud_fragment("ball", d, d)
+    box = fragment_from_arrays_quiet("box", _box().vertices, _box().faces)
+    shift = np.eye(4)
+    shift[:3, 3] = [5, 0, 0]
+    v, f, notes = merged_solid([box, ball], [np.eye(4), shift])
+    merged = trimesh.Trimesh(v, f, process=False)
+    assert merged.is_watertight and merged.body_count == 2
+    ball_volume = merged.volume - _box().volume
+    assert abs(ball_volume / (4 / 3 * np.pi) - 1) < 0.05, ball_volume
+    assert any(n.startswith("ball: a point cloud; meshed into ") and n.endswith(" faces for merged.stl")
+               for n in notes), notes
 
 
 def fragment_from_arrays_quiet(name, v, f):

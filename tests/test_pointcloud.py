@@ -145,24 +145,35 @@ def test_ply_point_clouds_ascii_and_binary_go_through_load_fragment(tmp_path):
     for name in ("a", "b", "c"):
         cloud = read_point_cloud(tmp_path / f"{name}.ply")
         assert np.allclose(cloud.points, pts, atol=1e-6) and np.allclose(cloud.normals, nrm, atol=1e-6)
-    frag = load_fragment(tmp_path / "b.ply")
-    assert frag.name == "b" and len(frag.faces) > 0
+    frag = load_fragment(tmp_path / "b.ply")  # with normals: matched on its points
+    assert frag.name == "b" and len(frag.faces) == 0 and np.allclose(frag.normals, nrm, atol=1e-6)
+    (tmp_path / "d.ply").write_bytes(header.replace("property float nx\nproperty float ny\nproperty float nz\n", "")
+                                     .format(fmt="binary_little_endian", n=len(pts)).encode()
+                                     + pts.astype("<f4").tobytes())
+    frag = load_fragment(tmp_path / "d.ply")  # without: meshed
+    assert frag.name == "d" and len(frag.faces) > 0
     assert is_watertight(frag.faces) and count_bodies(frag.vertices, frag.faces) == 1
     assert any(f"triangulated {pc.MATCH_POINTS} points" in n for n in frag.notes)
 
 
-def test_a_sparse_cloud_is_matched_on_its_points_and_keeps_its_normals(tmp_path):
-    """Fewer points than a mesh for matching needs: not meshed, though it closes (a sphere)."""
+def test_a_cloud_with_normals_or_a_sparse_one_is_matched_on_its_points(tmp_path):
+    """A cloud scanned with normals, sparse or dense, and one without normals with fewer points
+    than a mesh for matching needs: not meshed, though each closes (a sphere); every point kept."""
     from relicgpu.cloud.points import CloudFragment
 
-    for n in (3000, pc.MATCH_POINTS - 1):
+    for n in (3000, pc.MATCH_POINTS - 1, 2 * pc.MATCH_POINTS):
         pts, nrm = sphere_points(n)
         np.savetxt(tmp_path / "s.xyz", np.hstack([pts, nrm]))
         frag = load_fragment(tmp_path / "s.xyz")
         assert isinstance(frag, CloudFragment) and len(frag.faces) == 0 and len(frag.vertices) == n
         assert np.allclose(frag.normals, nrm)
-        assert any(f"{n} points, fewer than the {pc.MATCH_POINTS}" in m and "and their normals" in m
+        assert any(f"{n} points with normals; matched on its points and their normals" in m
                    for m in frag.notes), frag.notes
+    np.savetxt(tmp_path / "s.xyz", pts[:3000])
+    frag = load_fragment(tmp_path / "s.xyz")
+    assert isinstance(frag, CloudFragment) and frag.normals is None and len(frag.vertices) == 3000
+    assert any(f"3000 points, fewer than the {pc.MATCH_POINTS} a mesh for matching needs; matched on its points" in m
+               for m in frag.notes), frag.notes
 
 
 def test_npy_points_and_points_with_normals(tmp_path):

@@ -636,8 +636,7 @@ def test_a_bookshelf_s_sparse_clouds_in_files_are_matched_on_their_points_and_no
         paths.append(tmp_path / f"{f.name}.xyz")
         np.savetxt(paths[-1], np.c_[f.vertices, f.normals])
     assert main(["match", *map(str, paths), "-o", str(tmp_path / "m"), "--backend", "numpy"]) == 0
-    assert "2500 points, fewer than the 12000 a mesh for matching needs; matched on its points and their normals" \
-        in capsys.readouterr().err
+    assert "2500 points with normals; matched on its points and their normals" in capsys.readouterr().err
     doc = json.loads((tmp_path / "m" / "match.json").read_text())
     assert doc["accepted"], doc["reason"]
     rot, rms = _pose_gap(np.array(doc["transform"]), truth, b.vertices)
@@ -808,3 +807,27 @@ def test_a_break_point_is_framed_by_its_break_normal_and_its_boards():
     np.testing.assert_allclose(frames[:, :, 0], end_normals)
     np.testing.assert_allclose(np.abs(frames[:, 2, 1]), 1.0, atol=1e-9)
     np.testing.assert_allclose(np.linalg.det(frames), 1.0, atol=1e-9)
+
+
+def test_a_dense_cloud_is_matched_on_cloud_points_spread_evenly():
+    """A cloud denser than `Params.cloud_points` is prepared on that many of its own points,
+    spread evenly, each with its own normal; the fragment itself keeps every point."""
+    from relicgpu.cloud.points import cloud_fragment
+    from relicgpu.pair.prepare import prepare, thinned_cloud
+
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(20000, 3)) * [1.0, 0.6, 0.3]
+    n = d / np.linalg.norm(d, axis=1)[:, None]
+    frag = cloud_fragment("e", n * [1.0, 0.6, 0.3], n)  # an ellipsoid's points, the sphere's normals
+    p = prepare(frag, Params(cloud_points=5000), "numpy")
+    got = p.fragment
+    assert 4000 < len(got.vertices) <= 5000 and len(frag.vertices) == 20000
+    row = {tuple(v): i for i, v in enumerate(frag.vertices)}
+    i = np.array([row[tuple(v)] for v in got.vertices])
+    assert np.array_equal(got.normals, frag.normals[i])
+    # spread evenly: every point lies in a voxel of the thinning's grid that keeps one of them
+    from scipy.spatial import cKDTree
+    from relicgpu.cloud.points import choose_voxel
+    gap = cKDTree(got.vertices).query(frag.vertices)[0].max()
+    assert gap <= np.sqrt(3) * choose_voxel(frag.vertices, 5000) * (1 + 1e-9), gap
+    assert thinned_cloud(frag, 0) is frag and thinned_cloud(frag, 20000) is frag

@@ -55,7 +55,7 @@ from ..io.clouds import _check_points, MIN_POINTS, read_point_cloud
 from ..errors import CliError
 from ..io.files import ensure_not_input, write_mesh
 from ..io.meshes import MESH_SUFFIXES
-from ..io.fragment import Fragment, fragment_from_arrays, FragmentError
+from ..io.fragment import Fragment, fragment_from_arrays, FragmentError, is_cloud
 from .points import _median_spacing, choose_voxel, cloud_fragment, voxel_thin
 from .refine import closed_manifold_fault, decimate, refine_surface
 from .tets import _boundary, _largest_body, _OUT_FACES, _outside_by_flood, _surface, _Tets
@@ -94,7 +94,10 @@ MATCH_POINTS = MATCH_FACES // 2
 # A cloud of fewer than MATCH_POINTS points would make a mesh coarser than that density: it is
 # matched on its points, with the normals it was scanned with. Meshed, a sparse thin board's cloud
 # closes into a slab the segmentation misreads, and the scan's normals are lost (2,500 points a
-# piece, docs/benchmarks.md "Sparse clouds in files").
+# piece, docs/benchmarks.md "Sparse clouds in files"). A cloud scanned with normals is matched on its
+# points at any density (thinned evenly to `Params.cloud_points` by the matcher): meshed, a dense
+# one loses its normals and a thin wall closes into a slab (docs/benchmarks.md, "Dense clouds with
+# normals matched on their points, thinned").
 
 
 @dataclass(frozen=True)
@@ -363,20 +366,34 @@ def mesh_for_matching(points, *, max_points: int | None = DENSE_POINTS, faces: i
     return replace(again, notes=again.notes + (note,))
 
 
+def surface_of(fragment: Fragment) -> Fragment:
+    """The fragment, or a point cloud's surface meshed as a dense cloud is for matching
+    (`mesh_for_matching`): grouping's descriptors and merged.stl need a surface, which a cloud
+    matched on its points still has where it closes. FragmentError where it does not close into a
+    solid."""
+    if not is_cloud(fragment):
+        return fragment
+    label = fragment.source or fragment.name
+    mesh = mesh_for_matching(fragment.vertices, label=label)
+    return fragment_from_arrays(fragment.name, mesh.vertices, mesh.faces, source=fragment.source)
+
+
 def load_point_cloud_fragment(path, name: str | None = None, *, max_points: int | None = DENSE_POINTS,
                               faces: int = MATCH_FACES, alpha_factor: float = ALPHA_FACTOR,
                               progress: bool = False) -> Fragment:
     """Read a point-cloud file and mesh it for matching (`mesh_for_matching`) into a checked
-    Fragment (called by relicgpu.io.load_fragment); a cloud of fewer than MATCH_POINTS points, or
-    one that does not close into a solid, becomes a CloudFragment, matched on its points.
-    `relicgpu mesh` makes a mesh of any cloud to keep.
+    Fragment (called by relicgpu.io.load_fragment); a cloud with normals, one of fewer than
+    MATCH_POINTS points, or one that does not close into a solid becomes a CloudFragment, matched
+    on its points. `relicgpu mesh` makes a mesh of any cloud to keep.
     """
     p = Path(path)
     cloud = read_point_cloud(p)
-    if len(cloud.points) < MATCH_POINTS:
-        why = (f"{p}: {len(cloud.points)} points, fewer than the {MATCH_POINTS} a mesh for matching needs; "
-               f"matched on its points{'' if cloud.normals is None else ' and their normals'}")
+    if cloud.normals is not None:
+        why = f"{p}: {len(cloud.points)} points with normals; matched on its points and their normals"
         return cloud_fragment(name or p.stem, cloud.points, cloud.normals, str(p), cloud.notes + (why,))
+    if len(cloud.points) < MATCH_POINTS:
+        why = f"{p}: {len(cloud.points)} points, fewer than the {MATCH_POINTS} a mesh for matching needs; matched on its points"
+        return cloud_fragment(name or p.stem, cloud.points, None, str(p), cloud.notes + (why,))
     try:
         result = mesh_for_matching(cloud.points, max_points=max_points, faces=faces, alpha_factor=alpha_factor,
                                    progress=progress, label=str(p))

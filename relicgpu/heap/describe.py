@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from ..backends import resolve
-from ..cloud.triangulate import mesh_for_matching
-from ..io.fragment import Fragment, FragmentError, fragment_from_arrays, is_cloud
+from ..cloud.triangulate import surface_of
+from ..io.fragment import Fragment, FragmentError
 from ..params import Params
 from ..pair.segment import segment
 from ..pair.verify import vertex_normals
@@ -140,17 +140,6 @@ def _grouping_params(params) -> "Params":
     corpus fracture kind left out, it grouped those kinds' heaps at ARI 0.655 against 0.562 with
     Otsu's roughness split (docs/benchmarks.md, "Grouping heaps of other fractures")."""
     return dataclasses.replace(params or Params(), segmentation="regions")
-
-
-def surface_of(fragment: Fragment) -> Fragment:
-    """The fragment, or a point cloud's surface meshed as a dense cloud is for matching
-    (`triangulate.mesh_for_matching`): the descriptors read a surface, which a sparse cloud matched
-    on its points still has where it closes. FragmentError where it does not close into a solid."""
-    if not is_cloud(fragment):
-        return fragment
-    label = fragment.source or fragment.name
-    mesh = mesh_for_matching(fragment.vertices, label=label)
-    return fragment_from_arrays(fragment.name, mesh.vertices, mesh.faces, source=fragment.source)
 
 
 def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None) -> Descriptor:

@@ -50,7 +50,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .describe import Descriptor, FEATURE_NAMES, GAP_NAMES, GAP_SCALES, describe_all, surface_of
+from ..cloud.triangulate import surface_of
+from .describe import Descriptor, FEATURE_NAMES, GAP_NAMES, GAP_SCALES, describe_all
 
 from ..io.fragment import Fragment, FragmentError
 from ..io.load import Batch, read_batch

@@ -7,8 +7,9 @@ Fragments come in three kinds here:
 - open meshes (scans with holes): each hole is capped (a fan from the centre of its
   boundary loop) so that it joins the union; one that still does not make a closed solid is
   added as an open surface, and the notes say that merged.stl is then not watertight;
-- faceless point clouds (`relicgpu.cloud.points.CloudFragment`): points in assembly.glb, left out of
-  merged.stl with a note.
+- faceless point clouds (`relicgpu.cloud.points.CloudFragment`): points in assembly.glb; in
+  merged.stl the surface each closes into (`triangulate.surface_of`, as a dense cloud is meshed for
+  matching), or left out where it closes into none; a note says which.
 
 A fragment thinned at load (`Fragment.thinned_from`) is written at full resolution: its
 file is read again when it is written, one fragment at a time, so the thinned and the
@@ -33,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cloud.triangulate import surface_of
 from ..io.files import atomic_open, write_stl
 from ..io.fragment import Fragment, FragmentError, is_cloud, unique_rows
 from ..io.glb import colour, full_faces, full_resolution, scene_glb, write_glb
@@ -238,8 +240,8 @@ def merged_parts(fragments: list[Fragment], poses: list[np.ndarray], notes: list
     than UNION_MEMORY (a note says so: merged.stl is then not one watertight solid). Each
     original mesh is read (`full_resolution`) only when its set is reached and freed once
     passed on or made a solid. Holes are capped, meshes that cannot be closed kept as open
-    surfaces, point clouds left out; `notes` gets a line for each such decision, and one
-    when the solid holds several separate shells.
+    surfaces, point clouds meshed (or left out where they close into no solid); `notes` gets a line
+    for each such decision, and one when the solid holds several separate shells.
 
     Parameters
     ----------
@@ -257,9 +259,14 @@ def merged_parts(fragments: list[Fragment], poses: list[np.ndarray], notes: list
     meshes = []
     for frag, pose in zip(fragments, poses):
         if is_cloud(frag):
-            notes.append(f"{frag.name}: a point cloud (no faces); left out of merged.stl")
-        else:
-            meshes.append((frag, np.asarray(pose, np.float64)))
+            (status or (lambda text: None))(f"meshing {frag.name}")
+            try:
+                frag = surface_of(frag)
+            except FragmentError as exc:
+                notes.append(f"{frag.name}: a point cloud (no faces); left out of merged.stl ({exc})")
+                continue
+            notes.append(f"{frag.name}: a point cloud; meshed into {len(frag.faces)} faces for merged.stl")
+        meshes.append((frag, np.asarray(pose, np.float64)))
     boxes = np.array([_bbox(_placed(m, f.vertices)) for f, m in meshes]).reshape(-1, 2, 3)
     margin = BOX_MARGIN * np.array([f.size for f, _ in meshes])[:, None]
     sets = overlap_sets(boxes + np.stack([-margin, margin], axis=1))

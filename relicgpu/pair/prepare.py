@@ -246,11 +246,26 @@ def crease_points(vertices: np.ndarray, edges: np.ndarray, step: float, n_points
     return points[even_subsample(points, n_points)]
 
 
+def thinned_cloud(fragment, points: int):
+    """A cloud of more than `points` points (0: none) as that many spread evenly over it
+    (`even_subsample`), with their normals: what it is matched on. The local fits that read a
+    cloud (normals, fracture likelihood) span a fixed number of neighbours, so they read a dense
+    scan at a finer scale than they were made for; thinned, a dense scan reads as a sparse one
+    (docs/benchmarks.md, "Dense clouds with normals matched on their points, thinned")."""
+    keep = even_subsample(fragment.vertices, points) if points else None
+    if keep is None or len(keep) == len(fragment.vertices):
+        return fragment
+    given = getattr(fragment, "normals", None)
+    more = {} if given is None else {"normals": given[keep]}
+    return replace(fragment, vertices=fragment.vertices[keep], **more)
+
+
 def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
     """A fragment given as points (a `pointcloud.CloudFragment`, or any Fragment without faces),
     sampled by `cloudmatch.cloud_sample`; no contours or patches (no surface to cut), so
     matching runs on point-pair votes and ICP alone."""
     t0 = time.perf_counter()
+    fragment = thinned_cloud(fragment, params.cloud_points)
     given = getattr(fragment, "normals", None)
     sample = cloud_sample(fragment.vertices, given, params, scale)
     strict = cloud_sample(fragment.vertices, given, params, scale, STRICT_SPREADS)
