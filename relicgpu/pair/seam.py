@@ -24,6 +24,8 @@ at several turns alike, it picks the turn (`pipeline._by_skin`).
 """
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from .icp import apply, invert, plane_step, rotation_angle_deg
@@ -55,6 +57,9 @@ STEPS = 5
 # 1.5-3 degrees off where 50 points hold it (bench_clouds slab seeds 41, 44: 2.2 and 3.2 degrees
 # untrimmed, 1.2 and 0.5 at 3).
 TRIM = 3.0
+# Singular values of a quadric fit's normal equations under this share of the largest are taken
+# as zero (a design's under its square root, 3e-7: a patch of points on a line).
+GRAM_RCOND = 1e-13
 MAX_WEIGHT = 100.0  # a skin term weighs at most this many break terms (a few points fitting too well)
 
 
@@ -98,19 +103,30 @@ def _extensions(skin, skin_normals, points, point_normals, near: float, reach: f
     close = np.flatnonzero(d < near)
     if len(close) == 0:
         return 0, []
-    balls = tree.query_ball_point(skin[nearest[close]], reach)
-    sizes = np.fromiter(map(len, balls), np.int64, len(balls))
-    rows = np.repeat(np.arange(len(balls)), sizes)
+    # one ball about each skin point that is some point's nearest (points crowd about few of them)
+    centres, which = np.unique(nearest[close], return_inverse=True)
+    balls = tree.query_ball_point(skin[centres], reach)
+    ball_sizes = np.fromiter(map(len, balls), np.int64, len(balls))
+    members = np.fromiter(itertools.chain.from_iterable(balls), np.int64, int(ball_sizes.sum()))
+    sizes = ball_sizes[which]
+    rows = np.repeat(np.arange(len(close)), sizes)
+    flat = members[np.repeat((np.cumsum(ball_sizes) - ball_sizes)[which] - (np.cumsum(sizes) - sizes), sizes)
+                   + np.arange(len(rows))]
+    # the ball's points turned within AGREE of the point's normal, packed to the left of each row
+    turned = np.einsum("jd,jd->j", skin_normals[flat], point_normals[close][rows]) > AGREE
+    rows, flat = rows[turned], flat[turned]
+    sizes = np.bincount(rows, minlength=len(close))
+    fitted = sizes >= MIN_FIT
+    if not fitted.any():
+        return len(fitted), []
+    keep = fitted[rows]
+    rows, flat = np.cumsum(fitted)[rows[keep]] - 1, flat[keep]
+    close, sizes = close[fitted], sizes[fitted]
     cols = np.arange(len(rows)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
     idx = np.zeros((len(close), sizes.max()), np.int64)
     mask = np.zeros(idx.shape, bool)
-    idx[rows, cols] = np.concatenate(balls)
+    idx[rows, cols] = flat
     mask[rows, cols] = True
-    mask &= np.einsum("kjd,kd->kj", skin_normals[idx], point_normals[close]) > AGREE
-    fitted = mask.sum(1) >= MIN_FIT
-    close, idx, mask = close[fitted], idx[fitted], mask[fitted]
-    if len(close) == 0:
-        return len(fitted), []
     centre, axes, coef, fit = _quadrics(skin[idx], skin_normals[idx], mask)
     uq, vq, hq = np.einsum("kij,kj->ik", axes, points[close] - centre)
     off = np.abs(hq - _height(coef.T, uq, vq))
@@ -131,11 +147,23 @@ def _quadrics(points: np.ndarray, normals: np.ndarray, mask: np.ndarray):
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     axes = np.stack([t1, np.cross(m, t1), m], 1)
     u, v, h = np.moveaxis(np.einsum("kij,klj->kli", axes, points - centre[:, None]), 2, 0)
-    design = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], 2) * w
-    h = h * mask
-    coef = np.einsum("kij,kj->ki", np.linalg.pinv(design), h)
-    residual = np.einsum("klj,kj->kl", design, coef) - h
-    return centre, axes, coef, np.sqrt((residual ** 2).sum(1) / count[:, 0])
+    # the normal equations (6 x 6 a row, not an SVD of each row's whole design: a ball of REACH holds
+    # hundreds of points), over u and v in units of the row's own radius so that they are well
+    # conditioned; a radius for the linear and its square for the quadratic terms keeps each row's
+    # minimum-norm solution where the fit has no unique one (its null directions lie within them)
+    radius = np.sqrt(((u * u + v * v) * mask).sum(1) / count[:, 0])
+    radius = np.where(radius > 0, radius, 1.0)[:, None]
+    su, sv = u / radius, v / radius
+    design = np.empty(u.shape + (6,))
+    for j, column in enumerate((w[..., 0], su, sv, su * su, su * sv, sv * sv)):
+        np.multiply(column, w[..., 0], out=design[..., j])
+    h = (h * mask)[..., None]
+    design_t = design.transpose(0, 2, 1)
+    coef = np.linalg.pinv(design_t @ design, rcond=GRAM_RCOND, hermitian=True) @ (design_t @ h)
+    residual = (design @ coef - h)[..., 0]
+    coef = coef[..., 0]
+    units = np.concatenate([np.ones_like(radius), radius, radius, radius ** 2, radius ** 2, radius ** 2], 1)
+    return centre, axes, coef / units, np.sqrt((residual ** 2).sum(1) / count[:, 0])
 
 
 def _height(coef, u, v):
