@@ -307,10 +307,10 @@ def test_merged_stl_caps_holes_and_says_what_it_could_not_close():
     assert any(n.startswith("pts: a point cloud (no faces); left out of merged.stl (") for n in notes), notes
 
 
-def test_merged_stl_holds_the_surface_a_point_cloud_closes_into():
+def test_merged_stl_holds_the_surface_a_point_cloud_closes_into(tmp_path):
     """A cloud matched on its points (scanned with normals) is meshed for merged.stl, as it would
-    have been meshed for matching."""
-    from relicgpu.heap.outputs import merged_solid
+    have been meshed for matching; clouds alone make a merged.stl too."""
+    from relicgpu.heap.outputs import merged_solid, write_merged
     from relicgpu.cloud.points import cloud_fragment
 
     d = np.random.default_rng(1).normal(size=(3000, 3))
@@ -326,6 +326,10 @@ def test_merged_stl_holds_the_surface_a_point_cloud_closes_into():
     assert abs(ball_volume / (4 / 3 * np.pi) - 1) < 0.05, ball_volume
     assert any(n.startswith("ball: a point cloud; meshed into ") and n.endswith(" faces for merged.stl")
                for n in notes), notes
+    notes = []
+    assert write_merged(tmp_path / "merged.stl", [ball, ball], [np.eye(4), shift], notes)
+    merged = trimesh.load(tmp_path / "merged.stl")
+    assert merged.is_watertight and merged.body_count == 2, notes
 
 
 def fragment_from_arrays_quiet(name, v, f):

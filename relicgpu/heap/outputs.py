@@ -231,6 +231,25 @@ UNION_BYTES_PER_FACE = 600
 UNION_MEMORY = 3.4 * 2 ** 30
 
 
+def surfaces(fragments: list[Fragment], poses: list[np.ndarray], notes: list[str], status=None):
+    """The fragments with each point cloud replaced by the surface it closes into
+    (`triangulate.surface_of`) or left out where it closes into none, with their poses: (list of
+    Fragment, list of (4, 4) arrays). `notes` gets a line for each cloud."""
+    kept, placed = [], []
+    for frag, pose in zip(fragments, poses):
+        if is_cloud(frag):
+            (status or (lambda text: None))(f"meshing {frag.name}")
+            try:
+                frag = surface_of(frag)
+            except FragmentError as exc:
+                notes.append(f"{frag.name}: a point cloud (no faces); left out of merged.stl ({exc})")
+                continue
+            notes.append(f"{frag.name}: a point cloud; meshed into {len(frag.faces)} faces for merged.stl")
+        kept.append(frag)
+        placed.append(np.asarray(pose, np.float64))
+    return kept, placed
+
+
 def merged_parts(fragments: list[Fragment], poses: list[np.ndarray], notes: list[str], status=None):
     """The placed fragments as the meshes of a merged solid, one mesh at a time.
 
@@ -256,17 +275,7 @@ def merged_parts(fragments: list[Fragment], poses: list[np.ndarray], notes: list
     vertices : (V, 3) float, placed
     faces : (F, 3) int
     """
-    meshes = []
-    for frag, pose in zip(fragments, poses):
-        if is_cloud(frag):
-            (status or (lambda text: None))(f"meshing {frag.name}")
-            try:
-                frag = surface_of(frag)
-            except FragmentError as exc:
-                notes.append(f"{frag.name}: a point cloud (no faces); left out of merged.stl ({exc})")
-                continue
-            notes.append(f"{frag.name}: a point cloud; meshed into {len(frag.faces)} faces for merged.stl")
-        meshes.append((frag, np.asarray(pose, np.float64)))
+    meshes = list(zip(*surfaces(fragments, poses, notes, status)))
     boxes = np.array([_bbox(_placed(m, f.vertices)) for f, m in meshes]).reshape(-1, 2, 3)
     margin = BOX_MARGIN * np.array([f.size for f, _ in meshes])[:, None]
     sets = overlap_sets(boxes + np.stack([-margin, margin], axis=1))
@@ -393,12 +402,12 @@ def write_merged(path, fragments: list[Fragment], poses: list[np.ndarray], notes
                  progress: bool = False) -> bool:
     """Write the merged solid of placed fragments as a binary STL (`merged_parts` streamed into
     `io.write_stl`: one set of originals in memory at a time); False, and nothing written,
-    when they are all point clouds. `notes` gets the merge's decisions; `progress`: a bar
+    when they are all point clouds that close into no solid. `notes` gets the merge's decisions; `progress`: a bar
     in faces on a terminal."""
-    if all(is_cloud(f) for f in fragments):
-        list(merged_parts(fragments, poses, notes))  # the notes only
+    fragments, poses = surfaces(fragments, poses, notes)
+    if not fragments:
         return False
-    total = sum(full_faces(f) for f in fragments if not is_cloud(f))
+    total = sum(full_faces(f) for f in fragments)
     with progress_bar(total, f"writing {Path(path).name}", progress, unit="faces") as bar, atomic_open(path) as fh:
         # the bar counts faces written; its postfix names the step under way (reading, closing, uniting)
         write_stl(fh, merged_parts(fragments, poses, notes, bar.set_postfix_str), bar.update)
