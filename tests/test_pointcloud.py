@@ -156,6 +156,26 @@ def test_ply_point_clouds_ascii_and_binary_go_through_load_fragment(tmp_path):
     assert any(f"triangulated {pc.MATCH_POINTS} points" in n for n in frag.notes)
 
 
+def test_zero_normals_in_a_ply_take_their_nearest_point_s_and_mostly_zero_ones_are_ignored(tmp_path):
+    """A scanner writes nx = ny = nz = 0 where it had no normal: a cloud matched on its points would
+    use them as they are."""
+    pts, nrm = sphere_points(400)
+    header = ("ply\nformat binary_little_endian 1.0\nelement vertex {n}\nproperty float x\nproperty float y\n"
+              "property float z\nproperty float nx\nproperty float ny\nproperty float nz\nend_header\n")
+    some = nrm.copy()
+    some[::10] = 0.0
+    (tmp_path / "some.ply").write_bytes(header.format(n=400).encode() + np.hstack([pts, some]).astype("<f4").tobytes())
+    cloud = read_point_cloud(tmp_path / "some.ply")
+    assert np.allclose(np.linalg.norm(cloud.normals, axis=1), 1.0, atol=1e-6)
+    assert (cloud.normals[::10] @ np.ones(3) != 0).all() and (np.einsum("ij,ij->i", cloud.normals, nrm) > 0.8).all()
+    assert any("40 points have a zero normal; each takes its nearest point's" in n for n in cloud.notes)
+    most = np.zeros_like(nrm)
+    most[::10] = nrm[::10]
+    (tmp_path / "most.ply").write_bytes(header.format(n=400).encode() + np.hstack([pts, most]).astype("<f4").tobytes())
+    cloud = read_point_cloud(tmp_path / "most.ply")
+    assert cloud.normals is None and any("360 of 400 normals are zero; normals ignored" in n for n in cloud.notes)
+
+
 def test_a_cloud_with_normals_or_a_sparse_one_is_matched_on_its_points(tmp_path):
     """A cloud scanned with normals, sparse or dense, and one without normals with fewer points
     than a mesh for matching needs: not meshed, though each closes (a sphere); every point kept."""

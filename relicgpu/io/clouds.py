@@ -54,7 +54,26 @@ def read_point_cloud(path) -> PointCloud:
     if nrm is not None and not np.isfinite(nrm).all():
         nrm = None
         notes.append(f"{label}: normals hold NaN or infinite values; ignored")
+    if nrm is not None:
+        nrm = _fill_zero_normals(pts, nrm, label, notes)
     return PointCloud(pts, nrm, label, tuple(notes))
+
+
+def _fill_zero_normals(pts: np.ndarray, nrm: np.ndarray, label: str, notes: list) -> np.ndarray | None:
+    """(N, 3) normals where points a scanner gave a zero normal take their nearest point's; None
+    (with a note) where over half of them are zero: a cloud matched on its points uses them all."""
+    zero = np.linalg.norm(nrm, axis=1) < 1e-12
+    if not zero.any():
+        return nrm
+    if zero.mean() > 0.5:
+        notes.append(f"{label}: {int(zero.sum())} of {len(zero)} normals are zero; normals ignored")
+        return None
+    from scipy.spatial import cKDTree
+
+    nrm = nrm.copy()
+    nrm[zero] = nrm[~zero][cKDTree(pts[~zero]).query(pts[zero])[1]]
+    notes.append(f"{label}: {int(zero.sum())} points have a zero normal; each takes its nearest point's")
+    return nrm
 
 
 def _check_points(pts: np.ndarray, label: str, row_to_line=None) -> None:
