@@ -247,7 +247,7 @@ def crease_points(vertices: np.ndarray, edges: np.ndarray, step: float, n_points
 
 
 def thinned_cloud(fragment, points: int):
-    """A cloud of more than `points` points (0: none) as that many spread evenly over it
+    """A cloud of more than `points` points (0: no limit) as that many spread evenly over it
     (`even_subsample`), with their normals: what it is matched on. The local fits that read a
     cloud (normals, fracture likelihood) span a fixed number of neighbours, so they read a dense
     scan at a finer scale than they were made for; thinned, a dense scan reads as a sparse one

@@ -103,7 +103,7 @@ def _extensions(skin, skin_normals, points, point_normals, near: float, reach: f
     close = np.flatnonzero(d < near)
     if len(close) == 0:
         return 0, []
-    # one ball about each skin point that is some point's nearest (points crowd about few of them)
+    # one ball about each skin point that is some point's nearest, shared by the points nearest it
     centres, which = np.unique(nearest[close], return_inverse=True)
     balls = tree.query_ball_point(skin[centres], reach)
     ball_sizes = np.fromiter(map(len, balls), np.int64, len(balls))
