@@ -95,7 +95,7 @@ class Params:
     screen_trim: float = 0.05        # ... as are those farther than 3x this quantile of the distances
 
     # ICP (Eq. 34-35, Alg. 5)
-    cloud_points: int = 6000         # a point cloud is matched on at most this many points, spread evenly (0: all)
+    cloud_points: int = 6000         # a cloud with normals is matched on at most this many points, spread evenly (0: all)
     icp_points: int = 1500           # fracture points sampled per fragment ...
     sample_min_prob: float = 0.2     # ... from faces of at least this fracture likelihood, weighted by it
     sample_min_share: float = 0.02   # under this likelihood-weighted area share: the whole surface, uniformly

@@ -810,8 +810,8 @@ def test_a_break_point_is_framed_by_its_break_normal_and_its_boards():
 
 
 def test_a_dense_cloud_is_matched_on_cloud_points_spread_evenly():
-    """A cloud denser than `Params.cloud_points` is prepared on that many of its own points,
-    spread evenly, each with its own normal; the fragment itself keeps every point."""
+    """A cloud with normals denser than `Params.cloud_points` is prepared on that many of its own
+    points, spread evenly, each with its own normal; the fragment itself keeps every point."""
     from relicgpu.cloud.points import cloud_fragment
     from relicgpu.pair.prepare import prepare, thinned_cloud
 
@@ -831,3 +831,5 @@ def test_a_dense_cloud_is_matched_on_cloud_points_spread_evenly():
     gap = cKDTree(got.vertices).query(frag.vertices)[0].max()
     assert gap <= np.sqrt(3) * choose_voxel(frag.vertices, 5000) * (1 + 1e-9), gap
     assert thinned_cloud(frag, 0) is frag and thinned_cloud(frag, 20000) is frag
+    bare = cloud_fragment("e", frag.vertices)  # no normals: kept whole
+    assert thinned_cloud(bare, 5000) is bare
