@@ -91,7 +91,8 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     if (result.accepted or heads is not None or not params.wall_normals
             or not all(is_cloud(f) and f.normals is None for f in fragments)):
         return result
-    pa, pb = (prepare(cloud_fragment(f.name, f.vertices, wall_normals(f.vertices), f.source, f.notes), params, be,
+    whole = replace(params, cloud_points=0)  # normals of its own: a cloud without scan normals is kept whole
+    pa, pb = (prepare(cloud_fragment(f.name, f.vertices, wall_normals(f.vertices), f.source, f.notes), whole, be,
                       scale=scale) for f in fragments)
     second = _match_readings(pa, pb, params, be, None, scale)
     if not second.accepted:
