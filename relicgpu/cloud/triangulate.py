@@ -392,7 +392,8 @@ def load_point_cloud_fragment(path, name: str | None = None, *, max_points: int 
         why = f"{p}: {len(cloud.points)} points with normals; matched on its points and their normals"
         return cloud_fragment(name or p.stem, cloud.points, cloud.normals, str(p), cloud.notes + (why,))
     if len(cloud.points) < MATCH_POINTS:
-        why = f"{p}: {len(cloud.points)} points, fewer than the {MATCH_POINTS} a mesh for matching needs; matched on its points"
+        why = (f"{p}: {len(cloud.points)} points, fewer than the {MATCH_POINTS} a mesh for matching needs; "
+               "matched on its points")
         return cloud_fragment(name or p.stem, cloud.points, None, str(p), cloud.notes + (why,))
     try:
         result = mesh_for_matching(cloud.points, max_points=max_points, faces=faces, alpha_factor=alpha_factor,

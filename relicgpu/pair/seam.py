@@ -154,16 +154,13 @@ def _quadrics(points: np.ndarray, normals: np.ndarray, mask: np.ndarray):
     radius = np.sqrt(((u * u + v * v) * mask).sum(1) / count[:, 0])
     radius = np.where(radius > 0, radius, 1.0)[:, None]
     su, sv = u / radius, v / radius
-    design = np.empty(u.shape + (6,))
-    for j, column in enumerate((w[..., 0], su, sv, su * su, su * sv, sv * sv)):
-        np.multiply(column, w[..., 0], out=design[..., j])
+    design = np.stack([np.ones_like(su), su, sv, su * su, su * sv, sv * sv], 2) * w
     h = (h * mask)[..., None]
     design_t = design.transpose(0, 2, 1)
     coef = np.linalg.pinv(design_t @ design, rcond=GRAM_RCOND, hermitian=True) @ (design_t @ h)
     residual = (design @ coef - h)[..., 0]
     coef = coef[..., 0]
-    units = np.concatenate([np.ones_like(radius), radius, radius, radius ** 2, radius ** 2, radius ** 2], 1)
-    return centre, axes, coef / units, np.sqrt((residual ** 2).sum(1) / count[:, 0])
+    return centre, axes, coef / radius ** np.array([0, 1, 1, 2, 2, 2]), np.sqrt((residual ** 2).sum(1) / count[:, 0])
 
 
 def _height(coef, u, v):
