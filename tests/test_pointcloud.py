@@ -546,3 +546,23 @@ def test_refinement_makes_the_remeshed_surface_follow_the_source_normals():
         share[refine] = float(mesh.area_faces[cos < np.cos(np.radians(45))].sum() / mesh.area)
     # measured: 1.5% of the area turned more than 45 degrees before, 0.45% after
     assert share[True] < 0.5 * share[False], share
+
+
+@pytest.mark.parametrize("suffix", [".xyz", ".npy"])
+def test_zero_normal_rows_in_a_text_or_npy_cloud_are_filled_not_read_as_colours(tmp_path, suffix):
+    """Rows 0 0 0 among unit normals are normals a scanner did not have; colours are not unit vectors."""
+    pts, nrm = sphere_points(400)
+    some = nrm.copy()
+    some[::10] = 0.0
+    p = tmp_path / f"some{suffix}"
+    np.savetxt(p, np.hstack([pts, some])) if suffix == ".xyz" else np.save(p, np.hstack([pts, some]))
+    cloud = read_point_cloud(p)
+    assert cloud.normals is not None and np.allclose(np.linalg.norm(cloud.normals, axis=1), 1.0, atol=1e-6)
+    assert (np.einsum("ij,ij->i", cloud.normals, nrm) > 0.8).all()
+    assert any("40 points have a zero normal" in n for n in cloud.notes)
+    colours = np.random.default_rng(0).integers(0, 256, size=(400, 3)).astype(float)
+    colours[::10] = 0.0
+    q = tmp_path / f"colours{suffix}"
+    np.savetxt(q, np.hstack([pts, colours])) if suffix == ".xyz" else np.save(q, np.hstack([pts, colours]))
+    cloud = read_point_cloud(q)
+    assert cloud.normals is None and any("not unit normals (colours?)" in n for n in cloud.notes)

@@ -93,7 +93,9 @@ def _split_normals(arr: np.ndarray, label: str, notes: list) -> tuple[np.ndarray
     nrm = np.asarray(arr[:, 3:6], np.float64)
     with np.errstate(invalid="ignore"):
         lengths = np.linalg.norm(nrm, axis=1)
-    if np.isfinite(lengths).all() and np.all(np.abs(lengths - 1.0) < 0.05):
+    unit = np.abs(lengths - 1.0) < 0.05
+    # a scanner's zero rows are missing normals (`_fill_zero_normals`), not colours
+    if np.isfinite(lengths).all() and unit.any() and np.all(unit | (lengths < 1e-12)):
         return pts, np.ascontiguousarray(nrm)
     notes.append(f"{label}: columns 4 to 6 are not unit normals (colours?); ignored")
     return pts, None
