@@ -101,7 +101,7 @@ def _quadric_reference(points, normals):
 
 
 def test_the_batched_quadrics_fit_each_row_as_least_squares_does():
-    """`seam._quadrics` fits every row's masked points at once: each row as `numpy.linalg.lstsq` fits
+    """`seam._quadrics` fits every row's masked points at once (the rows' points one after another): each row as `numpy.linalg.lstsq` fits
     it alone, on random patches and on adversarial ones (collinear points, whose fit has no unique
     solution: the minimum-norm one; a patch facing along x, whose frame is taken from y; a narrow
     strip; a small patch far from the origin)."""
@@ -117,7 +117,8 @@ def test_the_batched_quadrics_fit_each_row_as_least_squares_does():
     normals[1] = normals[1][:, ::-1]
     points[2, :, 1] *= 1e-3  # a strip a thousandth as wide as it is long
     points[3] = points[3] * 1e-4 + 1e3  # far from the origin, small
-    centre, axes, coef, fit = seam._quadrics(points, normals, mask)
+    count = mask.sum(1)
+    centre, axes, coef, fit = seam._quadrics(points[mask], normals[mask], np.cumsum(count) - count)
     for k in range(rows):
         c, a, q, f = _quadric_reference(points[k][mask[k]], normals[k][mask[k]])
         assert np.allclose(centre[k], c, atol=1e-12) and np.allclose(axes[k], a, atol=1e-12)

@@ -105,62 +105,71 @@ def _extensions(skin, skin_normals, points, point_normals, near: float, reach: f
         return 0, []
     # one ball about each skin point that is some point's nearest, shared by the points nearest it
     centres, which = np.unique(nearest[close], return_inverse=True)
-    balls = tree.query_ball_point(skin[centres], reach)
+    balls = tree.query_ball_point(skin[centres], reach, return_sorted=False)
     ball_sizes = np.fromiter(map(len, balls), np.int64, len(balls))
     members = np.fromiter(itertools.chain.from_iterable(balls), np.int64, int(ball_sizes.sum()))
     sizes = ball_sizes[which]
     rows = np.repeat(np.arange(len(close)), sizes)
     flat = members[np.repeat((np.cumsum(ball_sizes) - ball_sizes)[which] - (np.cumsum(sizes) - sizes), sizes)
                    + np.arange(len(rows))]
-    # the ball's points turned within AGREE of the point's normal, packed to the left of each row
+    # the ball's points turned within AGREE of the point's normal
     turned = np.einsum("jd,jd->j", skin_normals[flat], point_normals[close][rows]) > AGREE
     rows, flat = rows[turned], flat[turned]
     sizes = np.bincount(rows, minlength=len(close))
     fitted = sizes >= MIN_FIT
     if not fitted.any():
         return len(fitted), []
-    keep = fitted[rows]
-    rows, flat = np.cumsum(fitted)[rows[keep]] - 1, flat[keep]
+    flat = flat[fitted[rows]]
     close, sizes = close[fitted], sizes[fitted]
-    cols = np.arange(len(rows)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
-    idx = np.zeros((len(close), sizes.max()), np.int64)
-    mask = np.zeros(idx.shape, bool)
-    idx[rows, cols] = flat
-    mask[rows, cols] = True
-    centre, axes, coef, fit = _quadrics(skin[idx], skin_normals[idx], mask)
+    centre, axes, coef, fit = _quadrics(skin[flat], skin_normals[flat], np.cumsum(sizes) - sizes)
     uq, vq, hq = np.einsum("kij,kj->ik", axes, points[close] - centre)
     off = np.abs(hq - _height(coef.T, uq, vq))
     return len(fitted), [(int(i), centre[k], axes[k], coef[k], float(fit[k]), float(off[k])) for k, i in enumerate(close)]
 
 
-def _quadrics(points: np.ndarray, normals: np.ndarray, mask: np.ndarray):
-    """Quadric height fields, one over each row's (K, L, 3) points where the (K, L) mask holds, along
-    their mean normal: (K, 3) origins, (K, 3, 3) axes [t1, t2, n], (K, 6) coefficients (`_height`)
-    and (K,) RMS residuals. Least squares with the minimum norm, as `numpy.linalg.lstsq`."""
-    w = mask[..., None].astype(np.float64)
-    count = mask.sum(1)[:, None]
-    centre = (points * w).sum(1) / count
-    m = (normals * w).sum(1)
+def _quadrics(points: np.ndarray, normals: np.ndarray, starts: np.ndarray):
+    """Quadric height fields, one over each run of the (n, 3) points (with (n, 3) normals) that
+    begins at `starts` (K,) and ends where the next begins, along the run's mean normal: (K, 3)
+    origins, (K, 3, 3) axes [t1, t2, n], (K, 6) coefficients (`_height`) and (K,) RMS residuals.
+    Least squares with the minimum norm, as `numpy.linalg.lstsq`."""
+    count = np.diff(np.append(starts, len(points)))
+    rows = np.repeat(np.arange(len(starts)), count)
+    centre = np.add.reduceat(points.T, starts, axis=1).T / count[:, None]
+    m = np.add.reduceat(normals.T, starts, axis=1).T
     m /= np.linalg.norm(m, axis=1, keepdims=True)
     other = np.where(np.abs(m[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     t1 = np.cross(m, other)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     axes = np.stack([t1, np.cross(m, t1), m], 1)
-    u, v, h = np.moveaxis(np.einsum("kij,klj->kli", axes, points - centre[:, None]), 2, 0)
-    # the normal equations (6 x 6 a row, not an SVD of each row's whole design: a ball of REACH holds
-    # hundreds of points), over u and v in units of the row's own radius so that they are well
-    # conditioned; a radius for the linear and its square for the quadratic terms keeps each row's
-    # minimum-norm solution where the fit has no unique one (its null directions lie within them)
-    radius = np.sqrt(((u * u + v * v) * mask).sum(1) / count[:, 0])
-    radius = np.where(radius > 0, radius, 1.0)[:, None]
-    su, sv = u / radius, v / radius
-    design = np.stack([np.ones_like(su), su, sv, su * su, su * sv, sv * sv], 2) * w
-    h = (h * mask)[..., None]
-    design_t = design.transpose(0, 2, 1)
-    coef = np.linalg.pinv(design_t @ design, rcond=GRAM_RCOND, hermitian=True) @ (design_t @ h)
-    residual = (design @ coef - h)[..., 0]
-    coef = coef[..., 0]
-    return centre, axes, coef / radius ** np.array([0, 1, 1, 2, 2, 2]), np.sqrt((residual ** 2).sum(1) / count[:, 0])
+    u, v, h = np.einsum("nij,nj->in", axes[rows], points - centre[rows])
+    # the normal equations (6 x 6 a run, not an SVD of each run's whole design: a ball of REACH
+    # holds hundreds of points), over u and v in units of the run's own radius so that they are
+    # well conditioned; a radius for the linear and its square for the quadratic terms keeps each
+    # run's minimum-norm solution where the fit has no unique one (its null directions lie within them)
+    radius = np.sqrt(np.add.reduceat(u * u + v * v, starts) / count)
+    radius = np.where(radius > 0, radius, 1.0)
+    su, sv = u / radius[rows], v / radius[rows]
+    # the Gram matrix from the 15 monomials of degree up to 4 in (su, sv), and the design times h
+    uu, uv, vv = su * su, su * sv, sv * sv
+    sums = np.add.reduceat(np.stack([np.ones_like(su), su, sv, uu, uv, vv, uu * su, uu * sv, vv * su, vv * sv,
+                                     uu * uu, uu * uv, uu * vv, uv * vv, vv * vv, h, h * su, h * sv, h * uu,
+                                     h * uv, h * vv]), starts, axis=1).T
+    gram = sums[:, _GRAM]
+    coef = (np.linalg.pinv(gram, rcond=GRAM_RCOND, hermitian=True) @ sums[:, 15:, None])[..., 0]
+    design = np.stack([np.ones_like(su), su, sv, uu, uv, vv], 1)
+    residual = np.einsum("nj,nj->n", design, coef[rows]) - h
+    fit = np.sqrt(np.add.reduceat(residual * residual, starts) / count)
+    return centre, axes, coef / radius[:, None] ** np.array([0, 1, 1, 2, 2, 2]), fit
+
+
+# Which of the monomials 1, u, v, u^2, uv, v^2, u^3, u^2 v, u v^2, v^3, u^4, u^3 v, u^2 v^2, u v^3,
+# v^4 each entry of the design [1, u, v, u^2, uv, v^2]'s Gram matrix sums.
+_GRAM = np.array([[0, 1, 2, 3, 4, 5],
+                  [1, 3, 4, 6, 7, 8],
+                  [2, 4, 5, 7, 8, 9],
+                  [3, 6, 7, 10, 11, 12],
+                  [4, 7, 8, 11, 12, 13],
+                  [5, 8, 9, 12, 13, 14]])
 
 
 def _height(coef, u, v):
