@@ -101,8 +101,8 @@ def _quadric_reference(points, normals):
 
 
 def test_the_batched_quadrics_fit_each_row_as_least_squares_does():
-    """`seam._quadrics` fits every row's masked points at once (the rows' points one after another): each row as `numpy.linalg.lstsq` fits
-    it alone, on random patches and on adversarial ones (collinear points, whose fit has no unique
+    """`seam._quadrics` fits every row's masked points at once (the rows' points one after another):
+    each row as `numpy.linalg.lstsq` fits it alone, on random patches and on adversarial ones (collinear points, whose fit has no unique
     solution: the minimum-norm one; a patch facing along x, whose frame is taken from y; a narrow
     strip; a small patch far from the origin)."""
     rng = np.random.default_rng(3)
