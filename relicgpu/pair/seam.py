@@ -151,13 +151,11 @@ def _quadrics(points: np.ndarray, normals: np.ndarray, starts: np.ndarray):
     su, sv = u / radius[rows], v / radius[rows]
     # the Gram matrix from the 15 monomials of degree up to 4 in (su, sv), and the design times h
     uu, uv, vv = su * su, su * sv, sv * sv
-    sums = np.add.reduceat(np.stack([np.ones_like(su), su, sv, uu, uv, vv, uu * su, uu * sv, vv * su, vv * sv,
-                                     uu * uu, uu * uv, uu * vv, uv * vv, vv * vv, h, h * su, h * sv, h * uu,
-                                     h * uv, h * vv]), starts, axis=1).T
-    gram = sums[:, _GRAM]
-    coef = (np.linalg.pinv(gram, rcond=GRAM_RCOND, hermitian=True) @ sums[:, 15:, None])[..., 0]
-    design = np.stack([np.ones_like(su), su, sv, uu, uv, vv], 1)
-    residual = np.einsum("nj,nj->n", design, coef[rows]) - h
+    design = np.stack([np.ones_like(su), su, sv, uu, uv, vv])
+    sums = np.add.reduceat(np.concatenate([design, [uu * su, uu * sv, vv * su, vv * sv, uu * uu, uu * uv, uu * vv,
+                                                    uv * vv, vv * vv], design * h]), starts, axis=1).T
+    coef = (np.linalg.pinv(sums[:, _GRAM], rcond=GRAM_RCOND, hermitian=True) @ sums[:, 15:, None])[..., 0]
+    residual = np.einsum("jn,nj->n", design, coef[rows]) - h
     fit = np.sqrt(np.add.reduceat(residual * residual, starts) / count)
     return centre, axes, coef / radius[:, None] ** np.array([0, 1, 1, 2, 2, 2]), fit
 
