@@ -569,3 +569,36 @@ def test_forest_weighs_each_rival_placement_alone(broken, monkeypatch):
     poses, groups = _finish_groups(pose, group)
     s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching, [])
     assert s.part_accuracy == 1.0
+
+
+def test_a_heap_matches_a_dense_cloud_on_the_points_match_pair_reads(tmp_path):
+    """`prepare` matches a cloud with normals on at most Params.cloud_points of its points
+    (`thinned_cloud`). A heap ships and caches its prepared fragments without the fragment and
+    sets it back in: that set the file's whole cloud back, so the readings that go back to the
+    fragment (the majority pick, the skin) read 20,000 points where `match_pair` read 6,000 (the
+    Blender cube's shards 15 and 16 as clouds: refused in the heap, right as a pair). The thinned
+    copy travels with the prepared fragment; a mesh, which prepare does not thin, still does not."""
+    from relicgpu.cloud.points import cloud_fragment
+    from relicgpu.heap.assembly import _prepare_one
+    from relicgpu.heap.cache import Cache, fragment_hash
+    from relicgpu.pair.prepare import received
+
+    r = synth.generate("slab", pieces=2, seed=0, faces=2000, noise=0.0005, progress=False)
+    mesh = r.fragments[0]
+    points, face = trimesh.sample.sample_surface(mesh.to_trimesh(), 9000, seed=0)
+    cloud = cloud_fragment("dense", points, mesh.to_trimesh().face_normals[face])
+    params = Params()
+    cache = Cache(tmp_path, params, mesh.size, ref.name)
+    for fragment, thinned in ((cloud, True), (mesh, False)):
+        payload = (0, params, ref.name, mesh.size)
+        shipped = _prepare_one(payload, fragment)
+        assert (shipped.fragment is None) != thinned
+        prepared = received(shipped, fragment)
+        cache.put_prepared(fragment_hash(fragment), prepared, fragment)
+        cached = cache.get_prepared(fragment, fragment_hash(fragment))
+        for p in (prepared, cached):
+            if thinned:
+                assert len(p.fragment.vertices) == len(prepared.fragment.vertices) <= params.cloud_points
+                assert np.array_equal(p.fragment.vertices, prepared.fragment.vertices)
+            else:
+                assert p.fragment is mesh

@@ -48,7 +48,7 @@ from .support import held_by
 from ..params import Params
 from ..pair.icp import invert
 from ..pair.pipeline import match_pair
-from ..pair.prepare import prepare, with_fragment
+from ..pair.prepare import prepare, received, shipped
 from ..pair.result import failed_doc
 
 # Screening: each fragment keeps its TOP_K best partners by screening score; a pair
@@ -237,8 +237,8 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
 
         def took_prepared(job, result):
             i = job.payload[0]
-            prepared[i] = with_fragment(result, fragments[i])
-            cache.put_prepared(hashes[i], prepared[i])
+            prepared[i] = received(result, fragments[i])
+            cache.put_prepared(hashes[i], prepared[i], fragments[i])
             bar.update(1)
 
         eng.map(_prepare_one, [Job((i, params, backend_name, scale), (i,)) for i in todo],
@@ -411,9 +411,9 @@ def _record(a: int, b: int, doc: dict, note: str) -> MatchRecord:
 
 
 def _prepare_one(payload, fragment):
-    """Prepare one fragment; the fragment is left out of the result (the caller has it)."""
+    """Prepare one fragment; the fragment is left out of the result where the caller has it (`shipped`)."""
     _, params, backend_name, scale = payload
-    return with_fragment(prepare(fragment, params, resolve(backend_name), scale=scale, with_second=True), None)
+    return shipped(prepare(fragment, params, resolve(backend_name), scale=scale, with_second=True), fragment)
 
 
 def _finish_groups(pose: list, group: list[int]) -> tuple[list, list[int]]:

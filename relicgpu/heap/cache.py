@@ -14,7 +14,7 @@ import numpy as np
 from ..io.files import atomic_write_bytes, atomic_write_json
 from ..io.fragment import Fragment
 from ..params import Params
-from ..pair.prepare import with_fragment
+from ..pair.prepare import received, shipped
 
 
 CACHE_VERSION = 1
@@ -78,17 +78,17 @@ class Cache:
         try:
             with open(path, "rb") as fh:
                 prepared = pickle.load(fh)
-            prepared = with_fragment(prepared, fragment)
+            prepared = received(prepared, fragment)
         except Exception:  # an unreadable or stale file: compute again
             return None
         self.hits += 1
         return prepared
 
-    def put_prepared(self, h: str, prepared) -> None:
+    def put_prepared(self, h: str, prepared, fragment: Fragment) -> None:
         path = self._path("prepared", self._key("prepared", h), ".pkl")
         if path is not None:
             # the fragment itself is not stored: it is what the key was made from
-            atomic_write_bytes(path, pickle.dumps(with_fragment(prepared, None), protocol=5))
+            atomic_write_bytes(path, pickle.dumps(shipped(prepared, fragment), protocol=5))
             self.writes += 1
 
     def get_pair(self, ha: str, hb: str) -> dict | None:

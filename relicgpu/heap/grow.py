@@ -25,7 +25,7 @@ from ..backends import resolve
 from ..io.fragment import Fragment, is_cloud
 from ..pair.icp import apply, invert
 from ..pair.pipeline import match_pair
-from ..pair.prepare import prepare, with_fragment
+from ..pair.prepare import prepare
 from ..pair.result import failed_doc
 from ..params import Params
 from .engines import Job
@@ -125,7 +125,7 @@ def grow_groups(fragments: list[Fragment], prepared: list, pose: list, group: li
             return prepared[m[0]]
         if m not in merged:
             frag = merged_fragment(fragments, list(m), pose, reach)
-            merged[m] = with_fragment(prepare(frag, params, backend, scale=scale, with_second=True), frag)
+            merged[m] = prepare(frag, params, backend, scale=scale, with_second=True)
         return merged[m]
 
     for _ in range(n):

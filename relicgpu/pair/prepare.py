@@ -140,6 +140,18 @@ def with_fragment(prepared: Prepared, fragment) -> Prepared:
     return replace(prepared, fragment=fragment, second=second)
 
 
+def shipped(prepared: Prepared, fragment) -> Prepared:
+    """`prepared` to send or store beside `fragment`, the fragment it was prepared from: left out where
+    it holds that fragment itself (the receiver has it), kept where prepare read a thinned copy
+    (`thinned_cloud`), which is what its matching reads."""
+    return with_fragment(prepared, None) if prepared.fragment is fragment else prepared
+
+
+def received(prepared: Prepared, fragment) -> Prepared:
+    """A `shipped` prepared holding `fragment` again where it was left out."""
+    return with_fragment(prepared, fragment) if prepared.fragment is None else prepared
+
+
 def sampling_prob(seg, params: Params) -> np.ndarray:
     """(F,) fracture likelihood the fracture sample is drawn with: `face_fracture_prob` where at
     least `sample_min_prob` (0 elsewhere); where that likelihood-weighted area is under
