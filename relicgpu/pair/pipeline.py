@@ -155,6 +155,8 @@ def _match_readings(a, b, params: Params, be, heads, scale: float) -> PairMatch:
             result = _match_regions(pa, pb, params, be, scale, timings, result)
         if not result.accepted:
             result = _match_majority(pa, pb, params, be, scale, timings, result)
+            if result.accepted:
+                return result  # nor held or polished on the skin: beside an inner piece's seam is break
         if not result.accepted:
             result = _match_thin(pa, pb, params, be, scale, timings, result)
     return held_by_skin(pa, pb, params, be, scale, result) if clouds and result.accepted else result
