@@ -196,6 +196,27 @@ def test_a_cloud_with_normals_or_a_sparse_one_is_matched_on_its_points(tmp_path)
                for m in frag.notes), frag.notes
 
 
+def test_a_cloud_is_meshed_once_for_grouping_and_merged_stl(monkeypatch):
+    """`surface_of` meshes a cloud once while it lives (`relicgpu group` asks twice), and says a
+    cloud that closes into no solid is none each time it is asked."""
+    from relicgpu.cloud.points import cloud_fragment
+
+    calls = []
+    real = pc.mesh_for_matching
+    monkeypatch.setattr(pc, "mesh_for_matching", lambda *a, **k: calls.append(1) or real(*a, **k))
+    pts, nrm = sphere_points(4000)
+    ball = cloud_fragment("ball", pts, nrm)
+    first = pc.surface_of(ball)
+    assert pc.surface_of(ball) is first and len(calls) == 1
+    assert_closed_outward_one_body(first.vertices, first.faces)
+    assert pc.surface_of(cloud_fragment("ball", pts, nrm)) is not first and len(calls) == 2  # another cloud
+    sheet = cloud_fragment("sheet", np.c_[np.random.default_rng(0).uniform(size=(3000, 2)), np.zeros(3000)])
+    for _ in range(2):
+        with pytest.raises(FragmentError, match="sheet"):
+            pc.surface_of(sheet)
+    assert len(calls) == 3
+
+
 def test_npy_points_and_points_with_normals(tmp_path):
     pts, nrm = sphere_points(30)
     np.save(tmp_path / "a.npy", pts)

@@ -388,7 +388,7 @@ def verify_clouds(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, bac
     measured by `cloud_penetration` (at most MAX_PENETRATION) instead (lengths absolute)."""
     if index_of is None:
         index_of = backend.nearest_index
-    ver = verify(a, b, transform, backend, contact, max_rmse, min_overlap, depth, 1.0, index_of, mutual=True,
+    ver = verify(a, b, transform, backend, contact, max_rmse, min_overlap, depth, None, index_of, mutual=True,
                  min_facing=min_facing)
     penetration = cloud_penetration(a, b, transform, depth, contact, index_of)
     if not ver.accepted and not ver.reason.startswith("facing"):

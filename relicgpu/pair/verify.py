@@ -79,7 +79,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.nda
 
 
 def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, contact: float,
-           max_rmse: float, min_overlap: float, depth: float, max_penetration: float,
+           max_rmse: float, min_overlap: float, depth: float, max_penetration: float | None,
            index_of=None, mutual: bool = False, min_facing: float = 0.0,
            max_surface_penetration: float = 1.0) -> Verification:
     """Check b moved by `transform` against a (all lengths absolute).
@@ -100,7 +100,8 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
     max_surface_penetration: the largest share of either surface sample deeper than `depth`
     inside the other anywhere within 3 depths of it, the contact zone included
     (`surface_penetration`; 1: not checked). `max_penetration` leaves the contact zone out, so
-    a wrong fit that sinks one fracture surface into the other's solid passes it."""
+    a wrong fit that sinks one fracture surface into the other's solid passes it; None: not
+    measured (the result's penetration is NaN; clouds measure theirs their own way)."""
     if index_of is None:
         index_of = backend.nearest_index
     inv = np.linalg.inv(transform)
@@ -118,10 +119,12 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
     both = np.concatenate([plane_b[in_b], plane_a[in_a]])
     rmse = float(np.sqrt(np.mean(both ** 2))) if len(both) else float("inf")
 
-    pen_b = _inside_share(apply(transform, b.surface), a, depth, contact, index_of)
-    # a's surface in b's frame is the same check with b fixed
-    pen_a = _inside_share(apply(inv, a.surface), b, depth, contact, index_of)
-    penetration = float(max(pen_a, pen_b))
+    penetration = float("nan")
+    if max_penetration is not None:
+        pen_b = _inside_share(apply(transform, b.surface), a, depth, contact, index_of)
+        # a's surface in b's frame is the same check with b fixed
+        pen_a = _inside_share(apply(inv, a.surface), b, depth, contact, index_of)
+        penetration = float(max(pen_a, pen_b))
     facing = facing_share(a, b, transform, contact, index_of) if min_facing > 0 else 1.0
     sunk = surface_penetration(a, b, transform, depth, index_of) if max_surface_penetration < 1.0 else 0.0
 
@@ -129,7 +132,7 @@ def verify(a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, backend, c
         return Verification(overlap, rmse, penetration, False, f"overlap {overlap:.2f} below {min_overlap:.2f}", facing)
     if rmse > max_rmse:
         return Verification(overlap, rmse, penetration, False, f"residual {rmse:.4g} above {max_rmse:.4g}", facing)
-    if penetration > max_penetration:
+    if max_penetration is not None and penetration > max_penetration:
         return Verification(overlap, rmse, penetration, False,
                             f"interpenetration {penetration:.3f} above {max_penetration:.3f}", facing)
     if facing < min_facing:
