@@ -18,6 +18,10 @@ class Params:
     # scale: the length all relative lengths below are fractions of; None = from the fragments
     unit: float | None = None
 
+    # a mesh whose vertices are noisy at its triangles' scale is matched on a smoothed copy
+    # (`pair.denoise`: told from the mesh itself; exact and coarse meshes never are)
+    denoise: bool = True
+
     # segmentation (Alg. 2)
     roughness_rings: int = 3         # neighbourhood (edge steps) for the normal perturbation of a face
     roughness_spacing: float = 0.02  # ... at this length at least, on finer meshes (segment.working_roughness)

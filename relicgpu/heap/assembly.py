@@ -46,6 +46,7 @@ from .screen import SCREEN_LCS_WEIGHT, _ppf_screen_job, _screen_blocks, normalis
 from .settle import settle
 from .support import held_by
 from ..params import Params
+from ..pair.denoise import smoothing_notes
 from ..pair.icp import invert
 from ..pair.pipeline import match_pair
 from ..pair.prepare import prepare, received, shipped
@@ -246,6 +247,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
         bar.close()
         timings["prepare"] = time.perf_counter() - t0
         stats["contours"] = int(sum(len(p.contours) for p in prepared))
+        stats["smoothed"] = smoothing_notes(p.fragment for p in prepared)
 
         # 2. screen all contour pairs in one batched call
         t0 = time.perf_counter()
@@ -362,7 +364,7 @@ def assemble(fragments_or_dir, params: Params | None = None, backend="auto", eng
                  cache_writes=cache.writes, groups=len(set(groups)), placed=sum(p is not None for p in poses))
     timings["total"] = time.perf_counter() - t_start
     result = Assembly(names, poses, groups, matches, timings, backend_name, eng.name, stats, scores, candidates,
-                      [f.file for f in fragments], list(batch.skipped), list(batch.notes), rejected)
+                      [f.file for f in fragments], list(batch.skipped), list(batch.notes) + stats["smoothed"], rejected)
     if out_dir is not None:
         t0 = time.perf_counter()
         write_outputs(result, fragments, out_dir, progress=show)

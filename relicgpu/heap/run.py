@@ -152,7 +152,7 @@ def _assemble_main(args) -> int:
         log(line)
     for e in s["errors"]:
         log(f"warning: pair failed: {e}")
-    for line in grouped_lines("note", s.get("merge_notes", [])):
+    for line in grouped_lines("note", s.get("smoothed", []) + s.get("merge_notes", [])):
         log(line)
     log("  " + "  ".join(f"{k} {v:.2f} s" for k, v in result.timings.items()))
     merged = not any("no merged.stl written" in n for n in s.get("merge_notes", []))

@@ -12,6 +12,7 @@ from . import contour as contour_mod, features as features_mod, fusion as fusion
 from ..backends import resolve
 from ..io.fragment import Fragment
 from ..params import Params, second_reading_params
+from .denoise import denoised
 from .cloudmatch import STRICT_SPREADS, cloud_sample, plane_samples, region_samples
 from ..cloud.points import even_subsample
 from .ppf import PairTable, pair_table, smoothed_normals
@@ -73,6 +74,8 @@ def prepare(fragment: Fragment, params: Params | None = None, backend="auto", sc
         raise ValueError(f"{fragment.name}: fragment has no extent")
     if len(fragment.faces) == 0:
         return _prepare_cloud(fragment, params, scale)
+    if params.denoise:
+        fragment = denoised(fragment)
     timings = {}
     t0 = time.perf_counter()
     seg = segment(fragment.vertices, fragment.faces, params, scale, be)
