@@ -14,6 +14,7 @@ from ..backends import resolve
 from ..cloud.triangulate import surface_of
 from ..io.fragment import Fragment, FragmentError
 from ..params import Params
+from ..pair.denoise import denoised
 from ..pair.segment import segment
 from ..pair.verify import vertex_normals
 
@@ -143,8 +144,11 @@ def _grouping_params(params) -> "Params":
 
 
 def describe(fragment: Fragment, params=None, colours: np.ndarray | None = None) -> Descriptor:
-    """The breakage-surviving descriptors of one fragment (a point cloud's: of `surface_of` it)."""
+    """The breakage-surviving descriptors of one fragment (a point cloud's: of `surface_of` it; a mesh
+    noisy at its triangles' scale: of its smoothed copy, `pair.denoise`)."""
     fragment = surface_of(fragment)
+    if _grouping_params(params).denoise:
+        fragment = denoised(fragment)
     v = np.asarray(fragment.vertices, np.float64)
     f = np.asarray(fragment.faces, np.int64)
     if len(f) < 4:

@@ -12,7 +12,8 @@ less the mean of its neighbours' offsets, is its noise; the smoothest fifth of t
 (`NOISE_QUANTILE`) still carrying more than `NOISE_RATIO` of the median edge means noise is
 everywhere. A mesh whose neighbouring faces lie exactly in one plane over `EXACT_SHARE` of its
 area (a cell-fracture shard, a CAD mesh) is exact, whatever its creases read, and is left as it
-is, as is a coarse mesh (under `MIN_FACES`), whose every vertex is a corner.
+is, as is a mesh of few faces (under `MIN_FACES`), whose creases and curvature lie a few edges
+apart and read as noise.
 
 Such a mesh is matched on a copy smoothed by Taubin's lambda|mu filter (rounds of the umbrella
 operator until it reads `SMOOTH_TO`, at most `ROUNDS`), which takes out the noise at the
@@ -38,7 +39,11 @@ from ..topology import mesh_topology
 # 0.030-0.054 at 0.2% (where half of them no longer match)
 NOISE_RATIO = 0.03
 NOISE_QUANTILE = 0.2
-MIN_FACES = 1000
+# Under MIN_FACES a piece's creases and curvature, a few edges apart on a decimated rescan, read as
+# noise: tetra-noisy at 3,000 faces (2,000-3,400 a piece) had 15 of 52 pieces flagged, and smoothed
+# its objects assembled at 0.00-0.25 where as given at 1.00; the rescans at 12,000 faces have 8,000-
+# 13,500 a piece
+MIN_FACES = 6000
 EXACT_DEG = 0.02  # neighbouring faces this close in normal lie in one plane: exact geometry (noisy scans: none)
 EXACT_SHARE = 0.1  # the Blender shards 0.18-0.72 of their area, noisy scans and synth's noisy pieces 0.00-0.03
 # ... smoothed round by round until it reads no noisier than SMOOTH_TO (the rescans as made at 12,000
