@@ -47,7 +47,7 @@ MIN_FACES = 6000
 EXACT_DEG = 0.02  # neighbouring faces this close in normal lie in one plane: exact geometry (noisy scans: none)
 EXACT_SHARE = 0.1  # the Blender shards 0.18-0.72 of their area, noisy scans and synth's noisy pieces 0.00-0.03
 # ... smoothed round by round until it reads no noisier than SMOOTH_TO (the rescans as made at 12,000
-# faces read 0.003-0.007), at most ROUNDS rounds: each round takes out about a third of the noise,
+# faces read 0.003-0.013), at most ROUNDS rounds: each round takes out about a third of the noise,
 # and every round also rounds the rims and flat cuts' edges that matching reads
 SMOOTH_TO = 0.01
 ROUNDS = 5
