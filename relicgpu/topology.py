@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix, identity
+from scipy.sparse import coo_matrix, csr_matrix, identity
 from scipy.sparse.csgraph import connected_components
 
 
@@ -33,6 +33,16 @@ def mesh_topology(faces: np.ndarray) -> Topology:
     edge_faces = np.stack([face_of[two], face_of[two + 1]], axis=1).astype(np.int32)
     boundary = key[starts[counts == 1]]
     return Topology(edge_faces, key[two], boundary)
+
+
+def vertex_adjacency(faces: np.ndarray, n: int) -> csr_matrix:
+    """(n, n) 1 where two of n vertices share an edge of the (F, 3) faces (once, however many
+    faces share it), else 0."""
+    f = np.asarray(faces, np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    a = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    a.data[:] = 1.0
+    return a
 
 
 def ring_average(values: np.ndarray, weights: np.ndarray, edge_faces: np.ndarray, rings: int) -> np.ndarray:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..io.fragment import count_bodies
+from ..topology import vertex_adjacency
 
 # Refinement (step 7): unit normals of the cloud from this many nearest points; rounds of
 # edge flips; the vertex move's neighbourhood (edge steps) and its pull to the old position.
@@ -131,10 +132,7 @@ def quadric_smooth(vertices: np.ndarray, faces: np.ndarray, rings: int = SMOOTH_
     incidence = coo_matrix((np.ones(3 * nf), (f.ravel(), np.repeat(np.arange(nf), 3))), shape=(nv, nf)).tocsr()
     acc = incidence @ q
     if rings > 1:
-        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-        adjacency = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                               shape=(nv, nv)).tocsr()
-        adjacency.data[:] = 1.0
+        adjacency = vertex_adjacency(f, nv)
         for _ in range(rings - 1):
             acc = acc + adjacency @ acc
     mat = acc[:, :9].reshape(nv, 3, 3)

@@ -26,10 +26,10 @@ import dataclasses
 import weakref
 
 import numpy as np
-from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse import csr_matrix
 
 from ..io.fragment import Fragment
-from ..topology import mesh_topology
+from ..topology import mesh_topology, vertex_adjacency
 
 # Chosen on the corpus's five rescanned families (seeds 1, 20-23 and 30-33) with noise of 0.1-0.2%
 # of the size added after decimation, the clean and coarse families, synth's pieces and the Blender
@@ -61,10 +61,7 @@ _AS_GIVEN: "weakref.WeakSet[Fragment]" = weakref.WeakSet()  # fragments matched 
 
 def _umbrella(faces: np.ndarray, n: int) -> csr_matrix:
     """(n, n) mean over each vertex's neighbours across edges (rows of isolated vertices zero)."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.concatenate([e, e[:, ::-1]])
-    a = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    a.data[:] = 1.0  # an edge counts once, however many faces share it
+    a = vertex_adjacency(faces, n)
     degree = np.asarray(a.sum(axis=1)).ravel()
     return csr_matrix(a.multiply(1.0 / np.maximum(degree, 1.0)[:, None]))
 
@@ -81,9 +78,11 @@ def scan_noise(vertices: np.ndarray, faces: np.ndarray) -> float:
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
-    if len(f) == 0:
-        return 0.0
-    mean = _umbrella(f, len(v))
+    return _noise(v, f, _umbrella(f, len(v))) if len(f) else 0.0
+
+
+def _noise(v: np.ndarray, f: np.ndarray, mean: csr_matrix) -> float:
+    """`scan_noise` of (V, 3) float64 vertices and (F, 3) int64 faces, given their `_umbrella`."""
     cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     normals = np.zeros_like(v)
     for c in range(3):
@@ -111,19 +110,27 @@ def exact_share(vertices: np.ndarray, faces: np.ndarray) -> float:
 
 def is_noisy(vertices: np.ndarray, faces: np.ndarray) -> bool:
     """Whether a mesh is noisy at its triangles' scale (see the module docstring)."""
-    return (len(faces) >= MIN_FACES and scan_noise(vertices, faces) > NOISE_RATIO
-            and exact_share(vertices, faces) < EXACT_SHARE)
+    return _noisy_reading(vertices, faces) is not None
+
+
+def _noisy_reading(vertices: np.ndarray, faces: np.ndarray) -> float | None:
+    """The mesh's `scan_noise` where it is noisy (`is_noisy`), else None."""
+    if len(faces) < MIN_FACES:
+        return None
+    noise = scan_noise(vertices, faces)
+    return noise if noise > NOISE_RATIO and exact_share(vertices, faces) < EXACT_SHARE else None
 
 
 def taubin(vertices: np.ndarray, faces: np.ndarray, rounds: int = ROUNDS, until: float = 0.0) -> tuple[np.ndarray, int]:
     """(V, 3) vertices after Taubin's lambda|mu smoothing over the mesh's edges, round by round until
     they read no noisier than `until` (`scan_noise`) or after `rounds` rounds, and the rounds taken."""
     v = np.array(vertices, np.float64)
-    mean = _umbrella(np.asarray(faces, np.int64), len(v))
+    f = np.asarray(faces, np.int64)
+    mean = _umbrella(f, len(v))
     for k in range(rounds):
         for step in (LAMBDA, MU):
             v += step * (mean @ v - v)
-        if until > 0 and scan_noise(v, faces) <= until:
+        if until > 0 and _noise(v, f, mean) <= until:
             return v, k + 1
     return v, rounds
 
@@ -136,13 +143,13 @@ def denoised(fragment: Fragment) -> Fragment:
     copy = _SMOOTHED.get(fragment)
     if copy is not None:
         return copy
-    if not is_noisy(fragment.vertices, fragment.faces):
+    noise = _noisy_reading(fragment.vertices, fragment.faces)
+    if noise is None:
         _AS_GIVEN.add(fragment)
         return fragment
     vertices, rounds = taubin(fragment.vertices, fragment.faces, ROUNDS, SMOOTH_TO)
-    note = (f"{fragment.file}: its vertices are noisy at its triangles' scale "
-            f"({scan_noise(fragment.vertices, fragment.faces):.3f} of its median edge); {SMOOTHED} "
-            f"{rounds} round{'s' if rounds > 1 else ''} (Taubin)")
+    note = (f"{fragment.file}: its vertices are noisy at its triangles' scale ({noise:.3f} of its median "
+            f"edge); {SMOOTHED} {rounds} round{'s' if rounds > 1 else ''} (Taubin)")
     copy = dataclasses.replace(fragment, vertices=vertices, notes=fragment.notes + (note,))
     _AS_GIVEN.add(copy)
     _SMOOTHED[fragment] = copy
