@@ -571,6 +571,35 @@ def test_forest_weighs_each_rival_placement_alone(broken, monkeypatch):
     assert s.part_accuracy == 1.0
 
 
+def test_forest_takes_the_placement_two_matches_agree_on_over_one_scored_higher(broken, monkeypatch):
+    # fragment 3 touches 0, 1 and 2: two right matches (0, 3) and (1, 3), scored low (small
+    # contacts), and a wrong one (2, 3) pulled 10% of the scale off, scored above their sum (a flat
+    # face laid on a face). Two matches that agree close a loop; one alone closes none
+    import relicgpu.heap.forest as assembly
+
+    monkeypatch.setattr(assembly, "RECOVERY_ROUNDS", 0)  # the rule itself, not the recovery after it
+    samples = truth_samples(broken)
+    solids = [closed_solid(f) for f in broken.fragments]
+    scale = scale_of(broken.fragments)
+    others = [Edge(i, j, _inv(broken.poses[i]) @ broken.poses[j], 0.8) for i, j in broken.touching if 3 not in (i, j)]
+    right = [Edge(i, 3, _inv(broken.poses[i]) @ broken.poses[3], 0.2) for i in (0, 1)]
+    rel = _inv(broken.poses[2]) @ broken.poses[3]
+    away = samples[3].surface.mean(axis=0) @ rel[:3, :3].T + rel[:3, 3] - samples[2].surface.mean(axis=0)
+    pull = np.eye(4)
+    pull[:3, 3] = 0.1 * scale * away / np.linalg.norm(away)
+    wrong = Edge(2, 3, pull @ rel, 0.5)
+    pose, group, notes = grow_forest(len(broken.fragments), others + right + [wrong], samples, Params(), scale, ref,
+                                     solids)
+    assert notes[(2, 3)] == "refused: other matches between the two groups agree on another placement", notes
+    assert all(notes[(e.a, e.b)].startswith("used") for e in right), notes
+    poses, groups = _finish_groups(pose, group)
+    s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching, [])
+    assert s.part_accuracy == 1.0
+    monkeypatch.setattr(assembly, "BACK_BY_COUNT", False)  # weighed by score alone, the wrong one joins
+    _, _, notes = grow_forest(len(broken.fragments), others + right + [wrong], samples, Params(), scale, ref, solids)
+    assert notes[(2, 3)] == "used: spanning tree", notes
+
+
 def test_a_heap_matches_a_dense_cloud_on_the_points_match_pair_reads(tmp_path):
     """`prepare` matches a cloud with normals on at most Params.cloud_points of its points
     (`thinned_cloud`). A heap ships and caches its prepared fragments without the fragment and

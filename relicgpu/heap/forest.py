@@ -40,6 +40,11 @@ MAX_SUSPECTS = 12
 # A wrong fit that passes verification on a smooth or flat break lays one face on another with
 # the rims apart; scored by overlap it can outrank the right fits (docs/benchmarks.md).
 RIM_WEIGHT = 10.0
+# A placement of one group on another is backed first by how many matches agree on it, then by
+# their summed score (`_backing`): a small contact scores low, and on coarse meshes a flat face
+# laid on a face outscored two right matches that agreed with each other (docs/benchmarks.md,
+# "Two matches that agree")
+BACK_BY_COUNT = True
 
 
 # --- the assembly graph ----------------------------------------------------------
@@ -85,8 +90,9 @@ def grow_forest(n: int, edges: list[Edge], samples: list, params: Params, scale:
 
     Each group keeps poses in its own frame. An edge between two groups merges them
     when (1) the verified edges between the two groups that agree with its placement
-    outweigh (by score) those that agree on any one other placement (wrong matches scatter:
-    summed together, three wrong ones outvoted a right one) and (2) no fragment of one group then
+    outnumber those that agree on any one other placement, or as many outweigh them by score
+    (wrong matches scatter: summed together, three wrong ones outvoted a right one; two that
+    agree close a loop, which one wrong match scored above them does not) and (2) no fragment of one group then
     interpenetrates a fragment of the other: by the volume of their intersection where both
     are closed solids (`solids`, manifold3d), else by `penetration` of the surface samples (where
     solids overlap thinly, under NEAR_MISS clash thicknesses, the two groups are first settled
@@ -163,6 +169,12 @@ def _suspects(edges: list[Edge], group: list[int], notes: dict) -> list[Edge]:
     return [e for e in order if (e.a, e.b) in blame][:MAX_SUSPECTS]
 
 
+def _backing(agreeing: list[Edge]) -> tuple[int, float]:
+    """What backs one placement of a group on another: the matches that agree on it, counted
+    first (BACK_BY_COUNT), then their summed score."""
+    return (len(agreeing) if BACK_BY_COUNT else 0, float(sum(e.score for e in agreeing)))
+
+
 def _tree_path(adjacent: dict[int, list[Edge]], start: int, goal: int) -> list[Edge]:
     """The edges of the tree path from start to goal (empty where none)."""
     back: dict[int, Edge | None] = {start: None}
@@ -213,10 +225,10 @@ def _grow(n: int, edges: list[Edge], samples: list, params: Params, scale: float
             return _pose_gap(samples[g.b].fracture, _inv(pose[g.a]) @ m @ pose[g.b], g.transform) <= tol
 
         agreeing = [agrees(move, g) for g in between]
-        agree = sum(g.score for g, ok in zip(between, agreeing) if ok)
+        agree = _backing([g for g, ok in zip(between, agreeing) if ok])
         others = [g for g, ok in zip(between, agreeing) if not ok]
         # wrong matches scatter: each rival placement is weighed alone, not all disagreeing matches together
-        rival = max((sum(h.score for h in others if agrees(m, h)) for m in map(implied, others)), default=0.0)
+        rival = max((_backing([h for h in others if agrees(m, h)]) for m in map(implied, others)), default=(0, 0.0))
         if rival > agree:
             notes[(e.a, e.b)] = "refused: other matches between the two groups agree on another placement"
             continue
