@@ -269,15 +269,14 @@ def test_forest_drops_a_wrong_match_scored_above_the_right_ones(broken, recovery
     wrong = Edge(a, b, pull @ rel, 0.95)
     others = [e for e in edges if (e.a, e.b) != (a, b)]
     pose, group, notes = grow_forest(len(broken.fragments), others + [wrong], samples, Params(), scale, ref, solids)
-    poses, groups = _finish_groups(pose, group)
-    s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching, [])
+    accuracy = _part_accuracy(broken, pose, group)
     if recovery:
         assert notes[(a, b)].startswith("refused: contradicted by the other matches"), notes
         assert all(notes[(e.a, e.b)].startswith("used") for e in others), notes
-        assert s.part_accuracy == 1.0
+        assert accuracy == 1.0
     else:  # the case recovery is for: the wrong match is used and the object comes out wrong
         assert notes[(a, b)] == "used: spanning tree"
-        assert s.part_accuracy < 1.0
+        assert accuracy < 1.0
 
 
 def test_forest_keeps_a_right_match_that_refused_interpenetrating_ones(broken):
@@ -538,6 +537,22 @@ def test_cli_reports_a_bad_directory_in_one_line(tmp_path):
     assert "not a directory" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def _part_accuracy(broken, pose, group) -> float:
+    """Part accuracy of a forest's poses and groups (`grow_forest`) against the truth."""
+    poses, groups = _finish_groups(pose, group)
+    return score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching, []).part_accuracy
+
+
+def _around_3(broken):
+    """The truth's samples, solids and scale, and right matches (0.8) of every touching pair but
+    those of fragment 3 (which touches 0, 1 and 2)."""
+    samples = truth_samples(broken)
+    solids = [closed_solid(f) for f in broken.fragments]
+    scale = scale_of(broken.fragments)
+    others = [Edge(i, j, _inv(broken.poses[i]) @ broken.poses[j], 0.8) for i, j in broken.touching if 3 not in (i, j)]
+    return samples, solids, scale, others
+
+
 def test_forest_weighs_each_rival_placement_alone(broken, monkeypatch):
     # fragment 3 touches 0, 1 and 2: one right match (1, 3) and two wrong ones, each placing 3 at
     # its own wrong place (pulled off the object by 10% and 20% of the scale: no interpenetration).
@@ -545,10 +560,7 @@ def test_forest_weighs_each_rival_placement_alone(broken, monkeypatch):
     import relicgpu.heap.forest as assembly
 
     monkeypatch.setattr(assembly, "RECOVERY_ROUNDS", 0)  # the rule itself, not the recovery after it
-    samples = truth_samples(broken)
-    solids = [closed_solid(f) for f in broken.fragments]
-    scale = scale_of(broken.fragments)
-    others = [Edge(i, j, _inv(broken.poses[i]) @ broken.poses[j], 0.8) for i, j in broken.touching if 3 not in (i, j)]
+    samples, solids, scale, others = _around_3(broken)
     centre = np.mean([samples[i].surface.mean(axis=0) @ broken.poses[i][:3, :3].T + broken.poses[i][:3, 3]
                       for i in range(len(broken.fragments))], axis=0)  # the object's, in its frame
 
@@ -566,9 +578,7 @@ def test_forest_weighs_each_rival_placement_alone(broken, monkeypatch):
                                      solids)
     assert notes[(1, 3)] == "used: spanning tree", notes
     assert all(notes[(e.a, e.b)].startswith("refused: disagrees with a closed loop") for e in wrong), notes
-    poses, groups = _finish_groups(pose, group)
-    s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching, [])
-    assert s.part_accuracy == 1.0
+    assert _part_accuracy(broken, pose, group) == 1.0
 
 
 def test_forest_takes_the_placement_two_matches_agree_on_over_one_scored_higher(broken, monkeypatch):
@@ -578,10 +588,7 @@ def test_forest_takes_the_placement_two_matches_agree_on_over_one_scored_higher(
     import relicgpu.heap.forest as assembly
 
     monkeypatch.setattr(assembly, "RECOVERY_ROUNDS", 0)  # the rule itself, not the recovery after it
-    samples = truth_samples(broken)
-    solids = [closed_solid(f) for f in broken.fragments]
-    scale = scale_of(broken.fragments)
-    others = [Edge(i, j, _inv(broken.poses[i]) @ broken.poses[j], 0.8) for i, j in broken.touching if 3 not in (i, j)]
+    samples, solids, scale, others = _around_3(broken)
     right = [Edge(i, 3, _inv(broken.poses[i]) @ broken.poses[3], 0.2) for i in (0, 1)]
     rel = _inv(broken.poses[2]) @ broken.poses[3]
     away = samples[3].surface.mean(axis=0) @ rel[:3, :3].T + rel[:3, 3] - samples[2].surface.mean(axis=0)
@@ -592,9 +599,7 @@ def test_forest_takes_the_placement_two_matches_agree_on_over_one_scored_higher(
                                      solids)
     assert notes[(2, 3)] == "refused: other matches between the two groups agree on another placement", notes
     assert all(notes[(e.a, e.b)].startswith("used") for e in right), notes
-    poses, groups = _finish_groups(pose, group)
-    s = score([f.vertices for f in broken.fragments], poses, groups, broken.poses, broken.touching, [])
-    assert s.part_accuracy == 1.0
+    assert _part_accuracy(broken, pose, group) == 1.0
     monkeypatch.setattr(assembly, "BACK_BY_COUNT", False)  # weighed by score alone, the wrong one joins
     _, _, notes = grow_forest(len(broken.fragments), others + right + [wrong], samples, Params(), scale, ref, solids)
     assert notes[(2, 3)] == "used: spanning tree", notes
