@@ -143,7 +143,7 @@ class Params:
     # sides across the partner's (None: not asked)
     outline_skin: float | None = 0.1
     # ... or where the skin beside the seam continues the partner's (`seam.skin_continuation`) by
-    # at least min_skin (None: never). Clouds with normals: the crease-region fit whose skin
+    # at least min_skin (None: never). Clouds: the fit of two curved crease regions whose skin
     # continues most, at least this much, is taken (`pipeline._by_skin`; None: never)
     min_skin: float | None = 0.2
     # of a mesh pair's fits that pass (or, where none does, that the residual band passes), the

@@ -76,8 +76,8 @@ REGION_TURNS = 36  # turns about the common normal tried for two regions put fac
 # Two accepted region fits at different poses whose overlaps are within this ratio make the
 # pair ambiguous (a near-symmetric flat break: the outline of an ellipse fits at two turns).
 AMBIGUOUS_SHARE = 0.9
-# ... but the skin beside a flat break's seam runs on into the partner's at one turn only: of the
-# SKIN_FITS widest-touching region fits, the one whose skin continues most (at least
+# ... but the skin beside a break's seam runs on into the partner's at one turn only: of the
+# SKIN_FITS widest-touching fits of two curved regions, the one whose skin continues most (at least
 # Params.min_skin) wins where every fit turned more than SKIN_RIVAL_DEG from it continues less
 # than SKIN_RIVALS times as much (`pipeline._by_skin`).
 SKIN_FITS = 8

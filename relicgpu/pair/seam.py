@@ -13,14 +13,15 @@ the inverse of its residual variance against the break's, the skin's outliers tr
 It runs where the fit is loose (`looseness` under `LOOSE`): where the break pins every direction
 the skin has nothing to add, and a worn or chipped rim could pull the fit; elsewhere a cloud
 fit's polish is taken only where its skin then continues the partner's clearly better
-(`skinhold.held_by_skin`). A flat break is loose in its own plane, and a cloud's flat-break fit
-is polished so too (`pipeline._by_skin`, on the `free_surface` of both pieces).
+(`skinhold.held_by_skin`). A cloud's fit of two crease regions that its skin picks is polished so
+too (`pipeline._by_skin`, on the `free_surface` of both pieces).
 
 `skin_continuation` asks the same quadrics a question instead: how much of the surface beside
 the seam runs on into the partner's. It needs no segmentation and holds on rescanned breaks,
 whose creases are noise: a mesh fit refused only for its residual is accepted on it
-(`meshfit.outline_fit`, `Params.min_skin`), and of a flat cloud break's region fits, which fit
-at several turns alike, it picks the turn (`pipeline._by_skin`).
+(`meshfit.outline_fit`, `Params.min_skin`), and of a cloud break's curved region fits, or a flat
+cut's plane fits, which fit at several turns alike, it picks the turn (`pipeline._by_skin`,
+`cutfit._plane_by_skin`).
 """
 from __future__ import annotations
 
