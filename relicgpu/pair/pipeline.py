@@ -274,11 +274,11 @@ def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float,
                    result: PairMatch) -> PairMatch:
     """Two clouds matched with each crease-bounded region of a against each of b as the fracture
     (a clean break is no rougher than the skin). Of the accepted fits of two curved regions, the one
-    whose skin runs on into the partner's across the seam (`seam.skin_continuation`, at least `Params.min_skin`) wins
-    where no fit at another turn continues nearly as well (`_by_skin`); else the one whose regions
-    touch over the largest share, where both regions curve (`LOOSE_CURVED`) and no fit at another
-    pose touches nearly as widely: a symmetric break cannot tell them apart, and a guess is worse
-    than no answer (result: kept where none wins). Where no fit passing the region bars wins on
+    whose skin runs on into the partner's across the seam (`seam.skin_continuation`, at least
+    `Params.min_skin`) wins where no fit at another turn continues nearly as well (`_by_skin`); else
+    the one whose regions touch over the largest share, where both regions curve (`LOOSE_CURVED`)
+    and no fit at another pose touches nearly as widely: a symmetric break cannot tell them apart,
+    and a guess is worse than no answer (result: kept where none wins). Where no fit passing the region bars wins on
     its skin, fits touching and facing less (`cloudmatch.LOOSE_OVERLAP`, `LOOSE_FACING`: a smooth
     cut's region holds skin beyond a shallow rim) may, on their skin alone, where both regions
     curve (`LOOSE_CURVED`)."""
