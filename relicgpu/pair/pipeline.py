@@ -273,15 +273,14 @@ def _boards_before_regions(pa: Prepared, pb: Prepared, params: Params, be, scale
 def _match_regions(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
                    result: PairMatch) -> PairMatch:
     """Two clouds matched with each crease-bounded region of a against each of b as the fracture
-    (a clean break is no rougher than the skin). Of the accepted fits of two curved regions, the one
-    whose skin runs on into the partner's across the seam (`seam.skin_continuation`, at least
-    `Params.min_skin`) wins where no fit at another turn continues nearly as well (`_by_skin`); else
-    the one whose regions touch over the largest share, where both regions curve (`LOOSE_CURVED`)
-    and no fit at another pose touches nearly as widely: a symmetric break cannot tell them apart,
-    and a guess is worse than no answer (result: kept where none wins). Where no fit passing the region bars wins on
-    its skin, fits touching and facing less (`cloudmatch.LOOSE_OVERLAP`, `LOOSE_FACING`: a smooth
-    cut's region holds skin beyond a shallow rim) may, on their skin alone, where both regions
-    curve (`LOOSE_CURVED`)."""
+    (a clean break is no rougher than the skin). Of the accepted fits of two curved regions, the one whose
+    skin runs on into the partner's across the seam (`seam.skin_continuation`, at least `Params.min_skin`)
+    wins where no fit at another turn continues nearly as well (`_by_skin`); else the one whose regions
+    touch over the largest share, where both regions curve (`LOOSE_CURVED`) and no fit at another pose
+    touches nearly as widely: a symmetric break cannot tell them apart, and a guess is worse than no
+    answer (result: kept where none wins). Where no fit passing the region bars wins on its skin, fits
+    touching and facing less (`cloudmatch.LOOSE_OVERLAP`, `LOOSE_FACING`: a smooth cut's region holds
+    skin beyond a shallow rim) may, on their skin alone, where both regions curve."""
     planar = match_planes(pa, pb, params, be, scale, timings)
     if planar is not None:
         return planar
@@ -339,13 +338,9 @@ def _by_skin(accepted: list, params: Params, be, scale: float, timings: dict, ri
     continues the partner's best, polished on that skin (`seam.seam_polish`), where it continues by
     at least `Params.min_skin`, every fit at another turn (over SKIN_RIVAL_DEG) continues less than
     `rivals_share` times as much, and the polished fit verifies (touching over `min_overlap`,
-    facing `min_facing`); None otherwise. Only fits of two curved regions (`LOOSE_CURVED`) are asked."""
-    # two flat faces laid on each other continue each other's skin wherever the faces beside them
-    # lie in one plane (a board's, a polyhedral shard's: the Blender cube's skin on skin passed so on
-    # one CPU's rounding); a flat cut is decided on its planes (`cutfit`), so the skin decides among
-    # fits of curved regions only (docs/benchmarks.md)
-    accepted = [fit for fit in accepted
-                if min(curvedness(fit[3].fracture), curvedness(fit[4].fracture)) >= LOOSE_CURVED]
+    facing `min_facing`); None otherwise. Fits of two curved regions only (`LOOSE_CURVED`): flat faces of
+    skin laid on each other continue the skin wherever the faces beside them lie in one plane."""
+    accepted = [f for f in accepted if min(curvedness(f[3].fracture), curvedness(f[4].fracture)) >= LOOSE_CURVED]
     if params.min_skin is None or not accepted:
         return None
     contact = params.contact_distance * scale
