@@ -32,7 +32,7 @@ from .fine import fine_stage
 from .meshfit import BANDED, band_fit, skin_over_band, skin_pick, unseen_skin, verify_mesh
 from .sheets import crease_fit, sheet_fit
 from .revolution import axes_meet, profiles_agree, skin_axis
-from .skinhold import held_by_skin, skin_continues
+from .skinhold import held_by_skin, on_axes, skin_continues
 from .verify import index_cache, rim_agreement
 
 
@@ -96,7 +96,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
                       scale=scale) for f in fragments)
     second = _match_readings(pa, pb, params, be, None, scale)
     if not second.accepted:
-        return result
+        return replace(result, reason=f"{result.reason}; with a thin wall's normals: {second.reason}")
     # such normals hold a vessel's axis of revolution; its sherds share one and one profile (`revolution`)
     walls = [(p.fragment.vertices, p.fragment.normals) for p in (pa, pb)]
     axes = [skin_axis(v, n, np.ones(len(v))) for v, n in walls]
@@ -121,8 +121,8 @@ def _match_readings(a, b, params: Params, be, heads, scale: float) -> PairMatch:
     if clouds and heads is None:
         result = skin_continues(pa, pb, params, scale, result)
         if result.accepted:
-            # a loose fit that its skin does not hold is refused here, and the other readings tried
-            result = held_by_skin(pa, pb, params, be, scale, result)
+            # a loose fit its skin does not hold, or one laying the axes apart, is refused: the others are tried
+            result = on_axes(pa, pb, params, scale, held_by_skin(pa, pb, params, be, scale, result))
             if result.accepted:
                 return result  # a cloud has no second reading
     if heads is None and second_reading_params(params) is not None:
@@ -156,10 +156,10 @@ def _match_readings(a, b, params: Params, be, heads, scale: float) -> PairMatch:
         if not result.accepted:
             result = _match_majority(pa, pb, params, be, scale, timings, result)
             if result.accepted:
-                return result  # nor held or polished on the skin: beside an inner piece's seam is break
+                return on_axes(pa, pb, params, scale, result)  # not polished on the skin: an inner seam is break
         if not result.accepted:
             result = _match_thin(pa, pb, params, be, scale, timings, result)
-    return held_by_skin(pa, pb, params, be, scale, result) if clouds and result.accepted else result
+    return on_axes(pa, pb, params, scale, held_by_skin(pa, pb, params, be, scale, result)) if clouds else result
 
 
 def _rims(pa: Prepared, pb: Prepared, params: Params, be, scale: float):

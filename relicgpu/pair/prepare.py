@@ -284,6 +284,8 @@ def _prepare_cloud(fragment, params: Params, scale: float) -> Prepared:
     fragment = thinned_cloud(fragment, params.cloud_points)
     given = getattr(fragment, "normals", None)
     sample = cloud_sample(fragment.vertices, given, params, scale)
+    if given is not None:  # read as a solid's (`revolution.firm`): a thin board's normals hold loose axes
+        sample = replace(sample, axis=skin_axis(fragment.vertices, given, np.ones(len(given)), thin=False))
     strict = cloud_sample(fragment.vertices, given, params, scale, STRICT_SPREADS)
     regions = [(s, Patch(0, centre, normal, 1.0), rough) for s, (centre, normal), rough in
                region_samples(fragment.vertices, given, params, scale)]

@@ -17,6 +17,7 @@ from . import seam
 from .cloudmatch import MIN_PICK_SKIN, PICK_SKIN_NEAR, THIN_WIDE_GATE, cloud_skin, verify_clouds
 from .prepare import Prepared
 from .result import PairMatch
+from .revolution import axes_meet
 from .verify import index_cache
 
 # A fit that its break holds is replaced by its polish on the skin where the share of the free
@@ -45,6 +46,14 @@ def skin_continues(pa: Prepared, pb: Prepared, params: Params, scale: float, res
                    f"partner's ({continues} of {near} points near it, under {MIN_PICK_SKIN:.2f})")
 
 
+def on_axes(pa: Prepared, pb: Prepared, params: Params, scale: float, result: PairMatch) -> PairMatch:
+    """An accepted cloud fit, refused where it does not carry one piece's axis of revolution onto the
+    other's (`revolution.axes_meet`, the axes read off scanned normals in `prepare`), as meshes'
+    fits are: a vessel's sherd laid half a turn off on its band passes on a sparse cloud's skin."""
+    apart = result.accepted and axes_meet(pa.sample.axis, pb.sample.axis, result.transform, scale, params.axis_apart)
+    return replace(result, accepted=False, score=0.0, reason=apart) if apart else result
+
+
 def held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, result: PairMatch) -> PairMatch:
     """An accepted cloud fit polished on the skin across the seam (`seam.seam_polish`), where the
     polished fit passes verification too. Where the break leaves the fit loose (`seam.looseness`
@@ -53,7 +62,7 @@ def held_by_skin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, r
     more; elsewhere, of the two polishes, the one whose skin continues the partner's most, where
     that beats the fit's own by SKIN_GAIN (result: kept otherwise). A loose fit whose polish is held by
     fewer than LOOSE_HELD skin points is refused."""
-    if "seam" in result.timings or not (len(pa.sample.fracture) and len(pb.sample.fracture)):
+    if not result.accepted or "seam" in result.timings or not (len(pa.sample.fracture) and len(pb.sample.fracture)):
         return result  # held by its skin already (`_by_skin`), or found on a pick of its own (`_match_strict`)
     index_of = index_cache(be)
     contact = params.contact_distance * scale
