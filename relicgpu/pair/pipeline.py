@@ -31,7 +31,7 @@ from . import seam
 from .fine import fine_stage
 from .meshfit import BANDED, band_fit, skin_over_band, skin_pick, unseen_skin, verify_mesh
 from .sheets import crease_fit, sheet_fit
-from .revolution import axes_meet, profiles_agree, skin_axis
+from .revolution import axes_meet, profiles_agree
 from .skinhold import held_by_skin, on_axes, skin_continues
 from .verify import index_cache, rim_agreement
 
@@ -99,7 +99,7 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
         return replace(result, reason=f"{result.reason}; with a thin wall's normals: {second.reason}")
     # such normals hold a vessel's axis of revolution; its sherds share one and one profile (`revolution`)
     walls = [(p.fragment.vertices, p.fragment.normals) for p in (pa, pb)]
-    axes = [skin_axis(v, n, np.ones(len(v))) for v, n in walls]
+    axes = [p.sample.axis and replace(p.sample.axis, thin=True) for p in (pa, pb)]  # read in `prepare`, as a wall's
     apart = axes_meet(*axes, second.transform, scale, params.axis_apart) or profiles_agree(
         *walls[0], axes[0], *walls[1], axes[1], second.transform, scale)
     if apart is not None:
