@@ -8,7 +8,7 @@ from relicgpu.heap.assembly import common_scale
 from relicgpu.pair.icp import apply, axis_rotation, rotation_angle_deg
 from relicgpu.pair.pipeline import match_pair
 from relicgpu.pair.prepare import prepare
-from relicgpu.pair.revolution import AXIS_HELD, axes_apart, axes_meet, firm, skin_axis
+from relicgpu.pair.revolution import AXIS_HELD, axes_apart, axes_meet, axis_starts, firm, skin_axis
 from relicgpu.params import Params
 from relicgpu.synth import corpus
 
@@ -175,3 +175,35 @@ def test_a_sherd_laid_upside_down_is_told_by_its_wall_s_tilt():
             assert turned is not None and "laid upside down" in turned, turned
         else:
             assert "runs along its axis" in at_truth
+
+
+def _cut_band(rng, cut, wall=0.03, n=400):
+    """(points, normals) across a bowl's wall (as `_sherd`'s) on the cut at turn `cut(z)`, normals
+    facing the turn's increase."""
+    z = rng.uniform(0.1, 0.5, n)
+    r = 0.4 + 0.15 * z - 0.1 * z ** 2 - rng.uniform(0, wall, n)
+    t, h = cut(z), 1e-5
+    slope = (cut(z + h) - cut(z - h)) / (2 * h)
+    normals = np.c_[-np.sin(t) / r, np.cos(t) / r, -slope]
+    return np.c_[r * np.cos(t), r * np.sin(t), z], normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def test_two_sherds_are_started_with_one_axis_laid_on_the_other():
+    """Two sherds of a bowl cut along a wavy line: with b anywhere, one of the starts that lay b's
+    axis on a's (`axis_starts`, voted by their cuts' points) lies within 3 degrees and 2% of the bowl's
+    size of the truth."""
+    rng = np.random.default_rng(5)
+    cut = lambda z: 1.0 + 0.2 * np.sin(12 * z)  # noqa: E731
+    skin = _sherd(0.0, 2.0, rng, n=3000)
+    side = skin[0][:, :2] @ np.eye(2)
+    below = np.arctan2(side[:, 1], side[:, 0]) < cut(skin[0][:, 2])
+    band, facing = _cut_band(rng, cut)
+    pose_b = _pose(rng)
+    into_b = np.linalg.inv(pose_b)
+    a_axis = skin_axis(skin[0][below], skin[1][below], skin[2][below], thin=False)
+    b_axis = skin_axis(apply(into_b, skin[0][~below]), skin[1][~below] @ into_b[:3, :3].T, skin[2][~below], thin=False)
+    assert a_axis is not None and b_axis is not None and firm(a_axis, 1.0) and firm(b_axis, 1.0)
+    starts = axis_starts(band, facing, a_axis, apply(into_b, band), -facing @ into_b[:3, :3].T, b_axis, 0.01, 16)
+    gaps = [(rotation_angle_deg(s[:3, :3] @ pose_b[:3, :3].T),
+             np.sqrt(((apply(s, apply(into_b, band)) - band) ** 2).sum(1).mean())) for s in starts]
+    assert any(turn < 3.0 and rms < 0.02 for turn, rms in gaps), gaps  # a start, for ICP to polish

@@ -606,6 +606,38 @@ def test_a_sherd_laid_upside_down_on_its_band_is_refused_on_its_axes():
         assert "axes of revolution do not meet" in result.reason, result.reason
 
 
+def test_a_rescanned_vessel_s_sherds_are_matched_with_one_axis_laid_on_the_other():
+    """Vessel-noisy seed 15 with normals: every reading's fit failed its checks (overlap 0.07 at 159
+    degrees off); started with one sherd's axis of revolution laid on the other's (`sheets.axis_fit`)
+    and checked as sherds of one vessel (`sheets.axis_check`), it is matched right."""
+    frags, truth = _corpus_cloud_pair("vessel-noisy", 15, 15)
+    result = match_pair(*frags, backend="numpy")
+    assert result.reason.startswith("accepted (axis laid on axis"), result.reason
+    _assert_right(result, frags[1], truth)
+
+
+def test_sherds_whose_picks_hold_their_lips_are_matched_on_their_seam():
+    """Vessel-noisy seed 13 with normals: the picks hold the lips and bases as well as the break, so
+    even the true pose overlaps 0.11 of them (under `Params.min_overlap`) and every reading refused
+    it. An axis fit is not asked to overlap: its seam, the skin beside it continuing the partner's
+    along a break's length (`sheets.AXIS_SEAM`), holds it: matched right."""
+    frags, truth = _corpus_cloud_pair("vessel-noisy", 13, 13)
+    result = match_pair(*frags, backend="numpy")
+    assert result.reason.startswith("accepted (axis laid on axis"), result.reason
+    _assert_right(result, frags[1], truth)
+
+
+def test_a_sherd_laid_on_the_other_s_wall_is_not_taken_from_its_axis():
+    """Vessel-noisy seed 20 with normals: of its axis fits, those 77-82 degrees off lay one sherd where
+    it overlaps the other on their surface of revolution (0.015-0.020 sunk, over
+    `sheets.AXIS_INSIDE`), and those half a turn off touch along a seam of 0.007 of the scale squared
+    (under `sheets.AXIS_SEAM`): not taken."""
+    frags, truth = _corpus_cloud_pair("vessel-noisy", 20, 20)
+    result = match_pair(*frags, backend="numpy")
+    if result.accepted:
+        _assert_right(result, frags[1], truth)
+
+
 def test_a_cloud_reads_its_axis_of_revolution_off_its_scanned_normals_alone():
     """A wall of a cylinder (radius 1, a third of a turn, 0.05 thick) scanned with normals holds its
     axis; a flat board's normals hold none, nor does a cloud scanned without normals."""

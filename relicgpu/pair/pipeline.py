@@ -30,7 +30,7 @@ from .result import PairMatch
 from . import seam
 from .fine import fine_stage
 from .meshfit import BANDED, band_fit, skin_over_band, skin_pick, unseen_skin, verify_mesh
-from .sheets import crease_fit, sheet_fit
+from .sheets import scanned_fit, sheet_fit
 from .revolution import axes_meet, profiles_agree
 from .skinhold import held_by_skin, on_axes, skin_continues
 from .verify import index_cache, rim_agreement
@@ -224,9 +224,9 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
                 result: PairMatch, bands: tuple | None = None) -> PairMatch:
     """Two clouds whose picks are thin walls' bands (`cloudmatch.thin_pick`) matched on them as a thin
     cut is (`cloudmatch.thin_wall_fit`), then from starts framed by their boards (`sheets.sheet_fit`),
-    then, with scanned normals, so with the break of a piece whose skin reads as rough as its break
-    read off its creases (`sheets.crease_fit`): result kept where no fit passes. bands: `_bands` of
-    the pair where the caller has it."""
+    then, with scanned normals, with a rough-skinned piece's break read off its creases or from one
+    axis of revolution laid on the other (`sheets.scanned_fit`): result kept where no fit passes.
+    bands: `_bands` of the pair where the caller has it."""
     t0 = time.perf_counter()
     spacing, skins, thin = bands or _bands(pa, pb)
     found, index_of = None, index_cache(be)
@@ -238,8 +238,8 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
             found = sheet_fit(skins, [pa.sample, pb.sample], spacing, params, scale, be, index_of)
     scanned = [getattr(p.fragment, "normals", None) for p in (pa, pb)]
     if found is None and all(n is not None for n in scanned):
-        found = crease_fit([np.asarray(p.fragment.vertices, np.float64) for p in (pa, pb)], scanned, skins,
-                           [pa.sample, pb.sample], spacing, params, scale, be, index_of)
+        found = scanned_fit([np.asarray(p.fragment.vertices, np.float64) for p in (pa, pb)], scanned, skins,
+                            [pa.sample, pb.sample], spacing, params, scale, be, index_of)
     if found is None:
         return result
     (transform, ver, reason), timings = found, {**timings, "seam": time.perf_counter() - t0}

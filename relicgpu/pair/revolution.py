@@ -155,6 +155,21 @@ def profile_tilt(points: np.ndarray, normals: np.ndarray, axis: Axis, near: np.n
     return float(along[near].mean()) if np.any(near) else 0.0
 
 
+def profile_tilts(a_points, a_normals, b_points, b_normals, a_axis: Axis, b_axis: Axis, transform: np.ndarray,
+                  scale: float) -> tuple[float, float]:
+    """How each piece's wall tilts along its axis (`profile_tilt`) within PROFILE_REACH of the scale of
+    the other under a fit (b moved by `transform`, (4, 4)), b's read in a's sense of the axis. Points
+    (n, 3) and unit normals (n, 3) of each piece in its own frame."""
+    moved = b_points @ transform[:3, :3].T + transform[:3, 3]
+    reach = PROFILE_REACH * scale
+    near_a = cKDTree(moved).query(a_points, distance_upper_bound=reach)[0] <= reach
+    near_b = cKDTree(a_points).query(moved, distance_upper_bound=reach)[0] <= reach
+    direction = transform[:3, :3] @ b_axis.direction
+    moved_axis = Axis(direction, transform[:3, :3] @ b_axis.foot + transform[:3, 3], b_axis.held)
+    tilt_b = profile_tilt(moved, b_normals @ transform[:3, :3].T, moved_axis, near_b)
+    return profile_tilt(a_points, a_normals, a_axis, near_a), tilt_b * float(np.sign(direction @ a_axis.direction))
+
+
 def profiles_agree(a_points, a_normals, a_axis: Axis | None, b_points, b_normals, b_axis: Axis | None,
                    transform: np.ndarray, scale: float) -> str | None:
     """None where two pieces' walls tilt alike along their axes beside the seam of a fit (b moved by
@@ -163,15 +178,7 @@ def profiles_agree(a_points, a_normals, a_axis: Axis | None, b_points, b_normals
     of each piece in its own frame."""
     if a_axis is None or b_axis is None or not (firm(a_axis, scale) and firm(b_axis, scale)):
         return None
-    moved = b_points @ transform[:3, :3].T + transform[:3, 3]
-    reach = PROFILE_REACH * scale
-    near_a = cKDTree(moved).query(a_points, distance_upper_bound=reach)[0] <= reach
-    near_b = cKDTree(a_points).query(moved, distance_upper_bound=reach)[0] <= reach
-    direction = transform[:3, :3] @ b_axis.direction
-    moved_axis = Axis(direction, transform[:3, :3] @ b_axis.foot + transform[:3, 3], b_axis.held)
-    tilt_a = profile_tilt(a_points, a_normals, a_axis, near_a)
-    tilt_b = profile_tilt(moved, b_normals @ transform[:3, :3].T, moved_axis, near_b)
-    tilt_b *= np.sign(direction @ a_axis.direction)  # read in a's sense of the axis
+    tilt_a, tilt_b = profile_tilts(a_points, a_normals, b_points, b_normals, a_axis, b_axis, transform, scale)
     if max(abs(tilt_a), abs(tilt_b)) < PROFILE_TILT:
         return (f"the wall runs along its axis beside the seam (tilts {tilt_a:+.2f} and {tilt_b:+.2f}): "
                 f"laid upside down it would fit alike")
@@ -179,3 +186,97 @@ def profiles_agree(a_points, a_normals, a_axis: Axis | None, b_points, b_normals
         return (f"the wall tilts one way beside the seam and the other way across it ({tilt_a:+.2f}, "
                 f"{tilt_b:+.2f}): laid upside down")
     return None
+
+
+# Two sherds of one vessel share its axis: a fit that lays b's axis on a's leaves a turn about it and
+# a slide along it (and the axis's sense). Each pair of break points at radii within AXIS_REACH
+# contacts of each other, with normals facing (their parts along, around and across the axis, which
+# the turn and slide keep, under FACING), votes for the turn and slide that lay one on the other;
+# a break's two outlines coincide at the right one only. Votes fall in cells AXIS_REACH contacts
+# wide (the turn's measured as arc length at the median radius).
+AXIS_REACH = 2.0
+AXIS_FACING = -0.5
+BAND_DEG = 60.0  # a normal turned this far off the radius lies on a wall's cut (`band_points`)
+
+
+def _onto(direction: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """A (3, 3) rotation carrying the unit `direction` onto the unit `target`."""
+    v, c = np.cross(direction, target), float(direction @ target)
+    if c < -1 + 1e-12:  # half a turn about any axis across the direction
+        across = np.linalg.svd(direction[None])[2][1]
+        return 2 * np.outer(across, across) - np.eye(3)
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1 + c)
+
+
+def _cylindrical(points: np.ndarray, normals: np.ndarray, axis: Axis):
+    """Angle, height and radius of (n, 3) points about `axis`, and their (n, 3) unit normals' parts
+    (outward, around, along)."""
+    d = axis.direction
+    e1 = np.linalg.svd(d[None])[2][1]
+    e2 = np.cross(d, e1)
+    rel = points - axis.foot
+    x, y, z = rel @ e1, rel @ e2, rel @ d
+    angle, radius = np.arctan2(y, x), np.hypot(x, y)
+    out = np.c_[np.cos(angle), np.sin(angle)]
+    nx, ny = normals @ e1, normals @ e2
+    parts = np.c_[nx * out[:, 0] + ny * out[:, 1], -nx * out[:, 1] + ny * out[:, 0], normals @ d]
+    return angle, z, radius, parts
+
+
+def axis_starts(a_points, a_normals, a_axis: Axis, b_points, b_normals, b_axis: Axis, contact: float,
+                count: int) -> np.ndarray:
+    """(K, 4, 4) poses carrying b onto a that lay b's axis on a's in either sense, best first by the
+    break points' votes (see `AXIS_REACH`), at most `count` distinct ones.
+
+    Parameters
+    ----------
+    a_points, a_normals : (n, 3) float, a's break points and their unit normals
+    b_points, b_normals : (m, 3) float, b's
+    a_axis, b_axis : each piece's axis in its own frame
+    """
+    from .icp import distinct_poses
+
+    reach = AXIS_REACH * contact
+    ta, za, ra, na = _cylindrical(a_points, a_normals, a_axis)
+    cell_angle = reach / max(float(np.median(ra)), reach)
+    poses, votes = [], []
+    for sense in (1.0, -1.0):
+        rot = _onto(sense * b_axis.direction, a_axis.direction)
+        base = np.eye(4)
+        base[:3, :3], base[:3, 3] = rot, a_axis.foot - rot @ b_axis.foot
+        tb, zb, rb, nb = _cylindrical(b_points @ rot.T + base[:3, 3], b_normals @ rot.T, a_axis)
+        i, j = np.nonzero((np.abs(ra[:, None] - rb[None]) < reach) & (na @ nb.T < AXIS_FACING))
+        if len(i) == 0:
+            continue
+        turn = np.mod(ta[i] - tb[j] + np.pi, 2 * np.pi) - np.pi
+        cells = np.c_[np.floor(turn / cell_angle), np.floor((za[i] - zb[j]) / reach)].astype(np.int64)
+        found, back, n = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+        back = back.ravel()
+        for c in np.argsort(-n, kind="stable")[:4 * count]:
+            at = back == c
+            angle, slide = float(np.mean(turn[at])), float(np.mean((za[i] - zb[j])[at]))
+            spin = np.eye(4)
+            spin[:3, :3] = _onto_turn(a_axis.direction, angle)
+            spin[:3, 3] = a_axis.foot - spin[:3, :3] @ a_axis.foot + slide * a_axis.direction
+            poses.append(spin @ base)
+            votes.append(n[c])
+    if not poses:
+        return np.zeros((0, 4, 4))
+    poses = np.array(poses)
+    return poses[distinct_poses(poses, np.argsort(-np.array(votes), kind="stable"), count, reach)]
+
+
+def band_points(points: np.ndarray, normals: np.ndarray, axis: Axis) -> tuple[np.ndarray, np.ndarray]:
+    """The (k, 3) points of (n, 3) `points` whose (n, 3) unit `normals` turn off the radius of `axis`
+    by more than BAND_DEG, and their normals: a wall's cut (and its lip), where the skin's face it."""
+    radial = _cylindrical(points, normals, axis)[3][:, 0]
+    keep = np.abs(radial) < np.cos(np.radians(BAND_DEG))
+    return points[keep], normals[keep]
+
+
+def _onto_turn(direction: np.ndarray, angle: float) -> np.ndarray:
+    """The (3, 3) rotation by `angle` (radians) about the unit `direction`."""
+    k = np.array([[0, -direction[2], direction[1]], [direction[2], 0, -direction[0]],
+                  [-direction[1], direction[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k

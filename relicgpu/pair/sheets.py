@@ -22,6 +22,12 @@ A scanned piece whose skin reads as rough as its break (`points.bulk_reads_rough
 leaves and stem faceted at about a point spacing) picks no break by roughness; its break strip is
 read off its creases instead (`crease_sample`) and started so against a partner whose pick holds its
 break (`crease_fit`).
+
+Two sherds of a wheel-made vessel share its axis of revolution, which scanned normals hold: where
+nothing else fits them, they are started with one axis laid on the other (`revolution.axis_starts`:
+a turn about it and a slide along it left), their breaks read as the points whose normals turn off
+the axis's radius (`band_sample`), fitted as boards' starts are (`axis_fit`), and checked as sherds
+of one vessel, on their seam's length rather than their picks' overlap (`axis_check`).
 """
 from __future__ import annotations
 
@@ -30,8 +36,9 @@ from dataclasses import replace
 import numpy as np
 
 from ..cloud.points import bulk_reads_rough, even_subsample
-from .cloudmatch import THIN_WIDE_GATE, thin_cut_check, thin_pick
+from .cloudmatch import PICK_SKIN_NEAR, RIM_HIT, THIN_WIDE_GATE, thin_cut_check, thin_pick, verify_clouds
 from .icp import distinct_poses, refine_point_to_plane
+from .revolution import axis_starts, band_points, firm, profile_tilts
 from .ppf import smoothed_normals
 from . import seam
 from .verify import SurfaceSample
@@ -73,6 +80,22 @@ CREASE_SHARE = 0.3
 # break) ranks the right start lower: CREASE_STARTS distinct starts are verified from it (plant-smooth
 # seeds 0, 3 and 10: the first start within 8 degrees at distinct ranks 29-64).
 CREASE_STARTS = 64
+# starts of two pieces' axes laid on each other (`axis_fit`) ...
+AXIS_STARTS = 16
+# ... and the interpenetration such a fit may have (`cloudmatch.cloud_penetration`): a sherd laid
+# on the other's surface of revolution where the two overlap shares its wall. Right fits of clouds
+# with scanned normals reach 0.005 (`cloudmatch.MAX_PENETRATION`'s measurement); vessel-noisy clouds
+# 6-29: the right axis fits 0.000-0.003, the four wrong ones that verified 0.021-0.029.
+AXIS_INSIDE = 0.01
+# ... and the skin near its seam that continues the partner's, in units of the scale squared (each
+# point a spacing squared): a seam along a break, not a touch at a corner. Vessel-noisy clouds 6-53,
+# every axis start and polish whose skin continues at all: right fits 0.008-0.034 (median 0.020),
+# those over 10 degrees off 0.001-0.022 (median 0.008, 95% under 0.016).
+AXIS_SEAM = 0.016
+# ... and of the free skin points near the seam, at least AXIS_SKIN continuing the partner's: the
+# same starts over the seam bar, right fits 0.54-0.89, those 3-10 degrees off 0.34-0.83 (a quarter
+# under 0.52; `cloudmatch.THIN_PICK_SKIN`'s 0.3 is a board's, whose right fits reach 0.43).
+AXIS_SKIN = 0.5
 
 
 def board_frames(sample: SurfaceSample) -> tuple[np.ndarray, np.ndarray]:
@@ -160,26 +183,34 @@ def crease_sample(points: np.ndarray, normals: np.ndarray, sample: SurfaceSample
     _, idx = cKDTree(points).query(points, k=k)
     turned = np.abs(np.einsum("nkd,nd->nk", normals[idx[:, 1:]], normals)) < CREASE_COS
     pick = np.flatnonzero(turned.mean(axis=1) >= CREASE_SHARE)
-    pick = pick[even_subsample(points[pick], params.icp_points)]
-    return replace(sample, fracture=points[pick], fracture_normals=normals[pick],
-                   fracture_region=np.zeros(len(pick), np.int64), fracture_weight=None,
-                   fracture_plane_normals=smoothed_normals(points[pick], normals[pick],
-                                                           params.ppf_normal_radius * scale))
+    return _with_break(sample, points[pick], normals[pick], params, scale)
 
 
 def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, index_of, count: int = STARTS,
               gates: tuple | None = None):
     """The fit of two boards' breaks from `sheet_starts` whose skin beside the seam continues the
-    partner's most, among those (each start as it is, polished point to plane on the break, and
-    polished on the skin across the seam with its gate widened as each of `gates` (default
-    BOARD_GATES) says) that verify as `cloudmatch.thin_wall_fit`'s do: (transform, Verification,
-    reason) or None. Arguments as `thin_wall_fit`'s."""
+    partner's most, among those that verify as `cloudmatch.thin_wall_fit`'s do (`starts_fit`):
+    (transform, Verification, reason) or None. Arguments as `thin_wall_fit`'s."""
+    a, b = samples
+    found = starts_fit(sheet_starts(a, b, CONTACT_SPACINGS * spacing, count), skins, samples, spacing, params, scale,
+                       backend, index_of, gates)
+    return None if found is None else (*found[:2], f"accepted (boards' breaks framed by their boards: {found[2]} "
+                                                   f"of {found[3]} skin points near the seam continue the partner's)")
+
+
+def starts_fit(starts: np.ndarray, skins, samples, spacing: float, params, scale: float, backend, index_of,
+               gates: tuple | None = None, check=None):
+    """Of the (K, 4, 4) `starts`, each as it is, polished point to plane on the break, and polished on
+    the skin across the seam with its gate widened as each of `gates` (default BOARD_GATES) says, the
+    one that passes `check` (a transform -> (Verification, continuing, near) or None; default: verified
+    as a thin cut is, `cloudmatch.thin_cut_check`) whose skin beside the seam continues the partner's
+    most: (transform, Verification, continuing, near) or None."""
     gates = BOARD_GATES if gates is None else gates
     a, b = samples
     contact = params.contact_distance * scale
-    starts = sheet_starts(a, b, CONTACT_SPACINGS * spacing, count)
     if len(starts) == 0:
         return None
+    check = check or (lambda transform: thin_cut_check(a, b, transform, spacing, params, scale, backend, index_of))
     pointwise = refine_point_to_plane(b.fracture, a.fracture, a.fracture_normals, starts, backend, POLISH_ROUNDS,
                                       2.0 * spacing, index_of(a.fracture), facing=(b.fracture_normals,
                                                                                    a.fracture_normals, FACING))
@@ -187,7 +218,7 @@ def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, ind
                                  index_of(a.fracture), wide)[0] for wide in gates for s in starts]
     best = None
     for transform in [*starts, *pointwise, *polished]:
-        passed = thin_cut_check(a, b, transform, spacing, params, scale, backend, index_of)
+        passed = check(transform)
         if passed is None:
             continue
         ver, continues, near = passed
@@ -196,8 +227,7 @@ def sheet_fit(skins, samples, spacing: float, params, scale: float, backend, ind
     if best is None:
         return None
     transform, continues, near, ver = best
-    return transform, ver, (f"accepted (boards' breaks framed by their boards: {continues} of {near} skin points "
-                            "near the seam continue the partner's)")
+    return transform, ver, continues, near
 
 
 def crease_fit(points, normals, skins, samples, spacing: float, params, scale: float, backend, index_of):
@@ -220,3 +250,66 @@ def crease_fit(points, normals, skins, samples, spacing: float, params, scale: f
         return None
     found = sheet_fit(skins, samples, spacing, params, scale, backend, index_of, CREASE_STARTS, (THIN_WIDE_GATE,))
     return None if found is None else (*found[:2], f"{found[2]} ({'ab'[i]}'s break read off its creases)")
+
+
+def axis_fit(points, normals, skins, samples, spacing: float, params, scale: float, backend, index_of):
+    """Two scanned clouds whose skins turn firmly about axes (`SurfaceSample.axis`, `revolution.firm`):
+    the starts that lay one axis on the other (`revolution.axis_starts`, AXIS_STARTS voted by the
+    picks' break points and as many by the bands', `band_sample`) fitted on the bands as boards'
+    starts are (`starts_fit`) and checked on the picks as sherds of one vessel (`axis_check`):
+    (transform, Verification, reason) or None. Arguments as `crease_fit`'s."""
+    if any(s.axis is None or not firm(s.axis, scale) for s in samples):
+        return None
+    a, b = samples
+    bands = [band_sample(p, n, s, params, scale) for p, n, s in zip(points, normals, samples)]
+    starts = np.concatenate([axis_starts(x.fracture, x.fracture_normals, x.axis, y.fracture, y.fracture_normals,
+                                         y.axis, params.contact_distance * scale, AXIS_STARTS)
+                             for x, y in (samples, bands)])
+    found = starts_fit(starts, skins, bands, spacing, params, scale, backend, index_of, check=lambda transform: (
+        axis_check(points, normals, a, b, transform, spacing, params, scale, backend, index_of)))
+    return None if found is None else (*found[:2], f"accepted (axis laid on axis: {found[2]} of {found[3]} skin "
+                                                   f"points near the seam continue the partner's)")
+
+
+def axis_check(points, normals, a: SurfaceSample, b: SurfaceSample, transform: np.ndarray, spacing: float, params,
+               scale: float, backend, index_of) -> tuple | None:
+    """An axis fit (b moved by the (4, 4) `transform`) checked as two sherds of one vessel are: their
+    picks verified without the overlap and facing checks (the break shared along a thin band, the
+    picks holding lips and bases too), at most AXIS_INSIDE of either sunk in the other, at least
+    AXIS_SKIN of the free skin points near the seam continuing the partner's over at least
+    AXIS_SEAM of the scale squared (`seam.skin_points`, each point standing for a spacing squared),
+    and the walls beside the seam not tilting in opposite senses (`revolution.profile_tilts`: laid
+    upside down): (Verification, continuing, near) or None. points, normals: the two pieces' (N_i, 3)
+    points and scanned unit normals."""
+    contact = params.contact_distance * scale
+    ver = verify_clouds(a, b, transform, backend, max(contact, RIM_HIT * spacing), params.max_rmse * scale, 0.0,
+                        params.penetration_depth * scale, index_of, min_facing=0.0)
+    if not ver.accepted or ver.penetration > AXIS_INSIDE:
+        return None
+    continues, near = seam.skin_points(a, b, transform, contact, scale)
+    if near < PICK_SKIN_NEAR or continues < AXIS_SKIN * near or continues * spacing ** 2 < AXIS_SEAM * scale ** 2:
+        return None
+    tilts = profile_tilts(points[0], normals[0], points[1], normals[1], a.axis, b.axis, transform, scale)
+    return None if tilts[0] * tilts[1] < 0 else (ver, continues, near)
+
+
+def band_sample(points: np.ndarray, normals: np.ndarray, sample: SurfaceSample, params, scale: float
+                ) -> SurfaceSample:
+    """`sample` with its fracture points those of the (N, 3) points whose (N, 3) scanned unit normals
+    turn off its axis's radius (`revolution.band_points`: a wall's cut, and its lip), at most
+    `Params.icp_points` spread evenly."""
+    return _with_break(sample, *band_points(points, normals, sample.axis), params, scale)
+
+
+def _with_break(sample: SurfaceSample, points: np.ndarray, normals: np.ndarray, params, scale: float) -> SurfaceSample:
+    pick = even_subsample(points, params.icp_points)
+    return replace(sample, fracture=points[pick], fracture_normals=normals[pick],
+                   fracture_region=np.zeros(len(pick), np.int64), fracture_weight=None,
+                   fracture_plane_normals=smoothed_normals(points[pick], normals[pick],
+                                                           params.ppf_normal_radius * scale))
+
+
+def scanned_fit(points, normals, skins, samples, spacing: float, params, scale: float, backend, index_of):
+    """`crease_fit`, else `axis_fit`: the thin paths' last fits, of two clouds scanned with normals."""
+    args = points, normals, skins, samples, spacing, params, scale, backend, index_of
+    return crease_fit(*args) or axis_fit(*args)
