@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..backends.numpy import query_threads
+from .icp import axis_rotation, distinct_poses, rotation_between
 
 # the second-smallest eigenvalue of the axis's normal equations over the smallest: a skin that
 # turns about one axis holds it (clean vessel sherds 27-550, rescanned 3-50); at 8 one clean
@@ -199,16 +200,6 @@ AXIS_FACING = -0.5
 BAND_DEG = 60.0  # a normal turned this far off the radius lies on a wall's cut (`band_points`)
 
 
-def _onto(direction: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """A (3, 3) rotation carrying the unit `direction` onto the unit `target`."""
-    v, c = np.cross(direction, target), float(direction @ target)
-    if c < -1 + 1e-12:  # half a turn about any axis across the direction
-        across = np.linalg.svd(direction[None])[2][1]
-        return 2 * np.outer(across, across) - np.eye(3)
-    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + k + k @ k / (1 + c)
-
-
 def _cylindrical(points: np.ndarray, normals: np.ndarray, axis: Axis):
     """Angle, height and radius of (n, 3) points about `axis`, and their (n, 3) unit normals' parts
     (outward, around, along)."""
@@ -235,14 +226,12 @@ def axis_starts(a_points, a_normals, a_axis: Axis, b_points, b_normals, b_axis: 
     b_points, b_normals : (m, 3) float, b's
     a_axis, b_axis : each piece's axis in its own frame
     """
-    from .icp import distinct_poses
-
     reach = AXIS_REACH * contact
     ta, za, ra, na = _cylindrical(a_points, a_normals, a_axis)
     cell_angle = reach / max(float(np.median(ra)), reach)
     poses, votes = [], []
     for sense in (1.0, -1.0):
-        rot = _onto(sense * b_axis.direction, a_axis.direction)
+        rot = rotation_between(sense * b_axis.direction, a_axis.direction)
         base = np.eye(4)
         base[:3, :3], base[:3, 3] = rot, a_axis.foot - rot @ b_axis.foot
         tb, zb, rb, nb = _cylindrical(b_points @ rot.T + base[:3, 3], b_normals @ rot.T, a_axis)
@@ -257,7 +246,7 @@ def axis_starts(a_points, a_normals, a_axis: Axis, b_points, b_normals, b_axis: 
             at = back == c
             angle, slide = float(np.mean(turn[at])), float(np.mean((za[i] - zb[j])[at]))
             spin = np.eye(4)
-            spin[:3, :3] = _onto_turn(a_axis.direction, angle)
+            spin[:3, :3] = axis_rotation(a_axis.direction, angle)
             spin[:3, 3] = a_axis.foot - spin[:3, :3] @ a_axis.foot + slide * a_axis.direction
             poses.append(spin @ base)
             votes.append(n[c])
@@ -274,9 +263,3 @@ def band_points(points: np.ndarray, normals: np.ndarray, axis: Axis) -> tuple[np
     keep = np.abs(radial) < np.cos(np.radians(BAND_DEG))
     return points[keep], normals[keep]
 
-
-def _onto_turn(direction: np.ndarray, angle: float) -> np.ndarray:
-    """The (3, 3) rotation by `angle` (radians) about the unit `direction`."""
-    k = np.array([[0, -direction[2], direction[1]], [direction[2], 0, -direction[0]],
-                  [-direction[1], direction[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
