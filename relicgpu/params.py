@@ -181,6 +181,10 @@ class Params:
     # refused where the pieces' axes of revolution do not meet or their walls tilt apart (a sherd
     # laid upside down), and weighs `pipeline.SECOND_READING_SCORE` of its score in the assembly
     wall_normals: bool = True
+    # clouds with given normals that nothing matched are matched once more on their points alone (as
+    # scanned without normals, `wall_normals` included): normals a program fitted to the points are
+    # blended over creases and across thin walls, where the points alone are read for what they are
+    points_alone: bool = True
     outline_radius: float = 0.05
     outline_spread: float = 0.12
     # assembly: a verified match whose sharp creases meet the partner's (`verify.rim_agreement` of

@@ -19,10 +19,12 @@ order) of the ../shared/realdata Blender set [k % 2] (cell-fracture shards of a 
 cylinder, third-party: fractures this project did not make). --kinds keeps some of the source's
 kinds (pair k is then kinds[k % len] of seed k // len). Each piece becomes --points points drawn
 from its surface (seed 100 k + i) with Gaussian noise of --noise times the piece's size, with the
-true normals (`normals`), with none (`none`), as the mesh itself with three holes cut into its skin
-(`open`), or as the closed mesh itself (`mesh`); `normals-file` and `none-file` write the cloud to an
-.xyz file and read it back with `load_fragment`, as `relicgpu match` and `assemble` read a user's
-cloud (a cloud that closes into a solid may come back meshed). A pair is right when `match_pair` accepts it with a
+true normals (`normals`), with none (`none`), with normals estimated off the points as a scanner's
+software writes them, passed as scanned (`estimated`), with the true normals' lines signed at
+random (`unoriented`), as the mesh itself with three holes cut into its skin (`open`), or as the
+closed mesh itself (`mesh`); `normals-file` and `none-file` write the cloud to an .xyz file and
+read it back with `load_fragment`, as `relicgpu match` and `assemble` read a user's cloud (a cloud
+that closes into a solid may come back meshed). A pair is right when `match_pair` accepts it with a
 rotation error under 2 degrees and the moved piece's points within 1% RMS of their true place,
 lengths relative to the object's size (the largest side of its assembled bounding box). A pair
 accepted at a wrong pose is counted apart: it is worse than a miss. The summary gives each mode's
@@ -43,7 +45,7 @@ SHAPES = ("vase", "torso", "slab")
 
 
 CORPUS = ("rough-clean", "smooth-clean", "voronoi-clean", "vessel-clean")
-MODES = ("normals", "none", "normals-file", "none-file", "open", "mesh")
+MODES = ("normals", "none", "estimated", "unoriented", "normals-file", "none-file", "open", "mesh")
 
 
 def source_kinds(source: str, kinds: str = "") -> tuple[str, ...]:
@@ -103,6 +105,11 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
         p, fi = trimesh.sample.sample_surface(m, points, seed=100 * k + i)
         p = p + np.random.default_rng(7 * k + i).normal(size=p.shape) * noise * f.size
         normals = m.face_normals[fi] if mode.startswith("normals") else None
+        if mode == "estimated":  # as a scanner's software writes them: plane fits, oriented
+            from relicgpu.cloud.points import estimate_normals
+            normals = estimate_normals(p)
+        if mode == "unoriented":  # the true normals' lines, each sign at random
+            normals = m.face_normals[fi] * np.random.default_rng(11 * k + i).choice([-1.0, 1.0], (len(p), 1))
         frags.append(_through_a_file(f.name, p, normals) if mode.endswith("-file")
                      else cloud_fragment(f.name, p, normals))
     return frags[0], frags[1], truth

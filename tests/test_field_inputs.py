@@ -513,3 +513,29 @@ def test_a_cloud_whose_normals_point_inward_is_turned_outward_and_matches():
     m = match_pair(*clouds, backend="numpy")
     true = invert(r.poses[0]) @ r.poses[1]
     assert m.accepted and rotation_angle_deg(m.transform[:3, :3] @ true[:3, :3].T) < 2.0
+
+
+def test_a_cloud_whose_normals_are_signed_at_random_is_turned_outward_point_by_point():
+    """Normals exported unoriented (a plane fit's sign is arbitrary): a global turn cannot mend
+    them; each is turned to the side the views from around the cloud see it from, as estimated
+    normals are, and the pair matches."""
+    from relicgpu import match_pair
+    from relicgpu.cloud.points import cloud_fragment
+    from relicgpu.pair.icp import invert, rotation_angle_deg
+    from relicgpu.synth import corpus
+
+    r = corpus.generate("rough-clean", pieces=2, seed=0, faces=4000)
+    rng = np.random.default_rng(3)
+    clouds, signs = [], []
+    for k, f in enumerate(r.fragments):
+        points, face = trimesh.sample.sample_surface(f.to_trimesh(), 2500, seed=k)
+        true = f.to_trimesh().face_normals[face]
+        sign = rng.choice([-1.0, 1.0], (len(points), 1)) if k == 1 else np.ones((len(points), 1))
+        clouds.append(cloud_fragment(f.name, points, sign * true, source=f"{f.name}.ply"))
+        signs.append(np.einsum("ij,ij->i", clouds[-1].normals, true))
+    assert not clouds[0].notes and np.all(signs[0] > 0)
+    assert len(clouds[1].notes) == 1 and clouds[1].notes[0].endswith("turned outward point by point"), clouds[1].notes
+    assert np.mean(signs[1] < 0) < 0.02  # as the visibility votes turn a plane fit's
+    m = match_pair(*clouds, backend="numpy")
+    true = invert(r.poses[0]) @ r.poses[1]
+    assert m.accepted and rotation_angle_deg(m.transform[:3, :3] @ true[:3, :3].T) < 2.0

@@ -627,6 +627,28 @@ def test_sherds_whose_picks_hold_their_lips_are_matched_on_their_seam():
     _assert_right(result, frags[1], truth)
 
 
+def test_clouds_that_their_normals_do_not_match_are_matched_on_their_points_alone():
+    """Smooth-clean seed 11 with normals: every path on the given normals refuses it (its best fit
+    touches none of the break); as if scanned without normals, matched right, and said so
+    (`Params.points_alone`). Without it, refused."""
+    frags, truth = _corpus_cloud_pair("smooth-clean", 11, 45)
+    result = match_pair(*frags, backend="numpy")
+    assert result.reason.endswith("(on the points alone, the given normals set aside)"), result.reason
+    _assert_right(result, frags[1], truth)
+    assert not match_pair(*frags, Params(points_alone=False), backend="numpy").accepted
+
+
+def test_a_boards_fit_laying_the_axes_apart_lets_the_axes_be_laid_on_each_other():
+    """Vessel-noisy seed 52 with normals: its picks are thin walls' bands, and the boards' starts
+    (`sheets.sheet_fit`) passed a fit 17 degrees off whose axes of revolution do not meet. Refused
+    at the pipeline's end, it kept the axis starts from being asked; refused where it was found, it
+    lets them be: matched right."""
+    frags, truth = _corpus_cloud_pair("vessel-noisy", 52, 52)
+    result = match_pair(*frags, backend="numpy")
+    assert result.reason.startswith("accepted (axis laid on axis"), result.reason
+    _assert_right(result, frags[1], truth)
+
+
 def test_a_sherd_laid_on_the_other_s_wall_is_not_taken_from_its_axis():
     """Vessel-noisy seed 20 with normals: of its axis fits, those 77-82 degrees off lay one sherd where
     it overlaps the other on their surface of revolution (0.015-0.020 sunk, over

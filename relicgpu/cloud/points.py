@@ -43,6 +43,9 @@ LINK_OFFSET = 0.5
 # thin objects, the Blender shards, the synth shapes) reads 0.00-0.04, negated 0.97-1.00; an open
 # cap 0.00-0.07
 INWARD = 0.75
+# ... and point by point (`orient_normals` on their lines) where more than MIXED faces away: normals
+# exported unoriented (a plane fit's sign is arbitrary) read 0.45-0.55 with random signs
+MIXED = 0.25
 # A faceted skin's second reading (`fracture_likelihood`): taken where the first picks under
 # EMPTY_PICK of the points; angles under FLAT_ANGLE (radians) are exactly flat, and a flat
 # point's facet angle is its smallest larger one under FACET_DEG (a board's 90-degree edge is no
@@ -80,18 +83,23 @@ def cloud_fragment(name: str, points, normals=None, source: str | None = None,
             raise FragmentError(f"{label}: {len(normals)} normals for {len(pts)} points")
         length = np.linalg.norm(normals, axis=1)
         normals = normals / np.where(length > 0, length, 1.0)[:, None]
-        if points_inward(pts, normals):
+        away = inward_share(pts, normals)
+        if away > INWARD:
             normals = -normals
             notes = tuple(notes) + (f"{label}: the given normals point into the solid; turned outward",)
+        elif away > MIXED:
+            normals = orient_normals(pts, normals)
+            notes = tuple(notes) + (f"{label}: {away:.0%} of the given normals point into the solid, their signs "
+                                    f"mixed; turned outward point by point",)
     return CloudFragment(name, pts, np.zeros((0, 3), np.int32), source, tuple(notes), normals)
 
 
-def points_inward(points: np.ndarray, normals: np.ndarray) -> bool:
-    """Whether (N, 3) normals point into the solid: the views from around the cloud see more
-    than `INWARD` of their weight (`visibility_votes`) facing away from them."""
+def inward_share(points: np.ndarray, normals: np.ndarray) -> float:
+    """The share of (N, 3) normals' weight that the views from around the cloud see facing away
+    (`visibility_votes`): about 0 for outward normals, 1 for inward, a half for unoriented."""
     vote = visibility_votes(points, normals)
     total = float(np.abs(vote).sum())
-    return total > 0 and -float(vote[vote < 0].sum()) > INWARD * total
+    return -float(vote[vote < 0].sum()) / total if total > 0 else 0.0
 
 
 def local_pca(points: np.ndarray, k: int = CLOUD_NEIGHBOURS,

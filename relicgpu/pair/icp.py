@@ -94,6 +94,11 @@ def ransac_poses(source: np.ndarray, target: np.ndarray, iterations: int, inlier
     return out
 
 
+def same_fit(p: np.ndarray, q: np.ndarray, scale: float) -> bool:
+    """Whether two (4, 4) fits are one: within 0.06 degrees and a thousandth of the scale."""
+    return bool(np.abs(p[:3, :3] - q[:3, :3]).max() < 1e-3 and np.abs(p[:3, 3] - q[:3, 3]).max() < 1e-3 * scale)
+
+
 def same_pose(p: np.ndarray, q: np.ndarray, tol: float) -> bool:
     return np.linalg.norm(p[:3, 3] - q[:3, 3]) < 3 * tol and rotation_angle_deg(p[:3, :3] @ q[:3, :3].T) < 10.0
 

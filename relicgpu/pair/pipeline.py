@@ -12,7 +12,7 @@ import numpy as np
 
 from ..backends import resolve
 from .icp import (apply, batched_icp, distinct_poses, facing_poses, invert, ransac_poses, refine_point_to_plane,
-                  same_pose)
+                  same_fit, same_pose)
 from ..io.fragment import is_cloud
 from ..cloud.points import cloud_fragment
 from ..cloud.wall_normals import wall_normals
@@ -77,17 +77,26 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     heads: optional (contour_a, point_a, contour_b, point_b), the head nodes picked by hand.
 
     Meshes are matched again on `Params.second_segmentation`'s reading (`Prepared.second`, or
-    prepared here) where no fit passes, where the fit's rims disagree (`_rims`), or where it passed
-    only in the band (`meshfit.band_fit`, `Params.second_when_banded`): its fit is taken where
-    the first found none or its rims agree more; it scores `SECOND_READING_SCORE`. Two clouds
-    scanned without normals that nothing matched are matched again with a thin wall's normals
-    (`Params.wall_normals`); such a fit scores `SECOND_READING_SCORE` too.
-    """
-    params = params or Params()
-    be = resolve(backend)
+    prepared here) where no fit passes, where the fit's rims disagree (`verify.rim_agreement`), or
+    where it passed only in the band (`meshfit.band_fit`, `Params.second_when_banded`): its fit is
+    taken where the first found none or its rims agree more; it scores `SECOND_READING_SCORE`. Two
+    clouds with given normals that nothing matched are matched again on their points alone
+    (`Params.points_alone`), and two without, with a thin wall's normals (`Params.wall_normals`):
+    such fits score `SECOND_READING_SCORE` too."""
+    params, be = params or Params(), resolve(backend)
     scale = float(scale or pair_scale(a, b, params))
+    a, b = (_as_prepared(x, params, be, scale) for x in (a, b))
     result = _match_readings(a, b, params, be, heads, scale)
-    fragments = [x.fragment if isinstance(x, Prepared) else x for x in (a, b)]
+    fragments = [a.fragment, b.fragment]
+    # not two thin walls: their scanned normals' own paths read them better (vessel-noisy seed 14: 118 degrees off)
+    if not (result.accepted or heads is not None or not params.points_alone
+            or not all(is_cloud(f) and f.normals is not None for f in fragments) or all(_bands(a, b)[2])):
+        alone = match_pair(*(cloud_fragment(f.name, f.vertices, None, f.source, f.notes) for f in fragments), params,
+                           be, scale=scale)
+        if not alone.accepted:
+            return replace(result, reason=f"{result.reason}; on the points alone: {alone.reason}")
+        return replace(alone, score=SECOND_READING_SCORE * alone.score,
+                       reason=f"{alone.reason} (on the points alone, the given normals set aside)")
     if (result.accepted or heads is not None or not params.wall_normals
             or not all(is_cloud(f) and f.normals is None for f in fragments)):
         return result
@@ -116,7 +125,12 @@ def _match_readings(a, b, params: Params, be, heads, scale: float) -> PairMatch:
     params = cloud_params(params, (pa.fragment, pb.fragment), scale)
     timings = {"prepare": time.perf_counter() - t_start}
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
-    rims = None if heads is not None or clouds else _rims(pa, pb, params, be, scale)
+    # two readings' fits at different poses are weighed by how their rims meet the partner's creases:
+    # a reading that takes a patch of skin for the break can pass a wrong fit of that patch, and the
+    # right fit puts the outlines of the common break together, whichever reading found it
+    rim_index, contact = index_cache(be), params.contact_distance * scale
+    rims = None if heads is not None or clouds else (
+        lambda t: rim_agreement(pa.sample, pb.sample, t, contact, rim_index))
     result = _match_prepared(pa, pb, params, be, heads, scale, timings)
     if clouds and heads is None:
         result = skin_continues(pa, pb, params, scale, result)
@@ -160,18 +174,6 @@ def _match_readings(a, b, params: Params, be, heads, scale: float) -> PairMatch:
         if not result.accepted:
             result = _match_thin(pa, pb, params, be, scale, timings, result)
     return on_axes(pa, pb, params, scale, held_by_skin(pa, pb, params, be, scale, result)) if clouds else result
-
-
-def _rims(pa: Prepared, pb: Prepared, params: Params, be, scale: float):
-    """A function from a transform of the pair (b onto a) to `verify.rim_agreement` of that fit.
-
-    Two readings' fits at different poses are weighed by it: a reading that takes a patch of skin
-    for the break can pass a wrong fit of that patch, and the right fit puts the outlines of the
-    common break together, whichever reading found it. A fit whose crease points on the other
-    surface mostly lie on its creases (agreement above 0) is taken as it is."""
-    index_of = index_cache(be)
-    contact = params.contact_distance * scale
-    return lambda transform: rim_agreement(pa.sample, pb.sample, transform, contact, index_of)
 
 
 def _match_strict(pa: Prepared, pb: Prepared, params: Params, be, scale: float, timings: dict,
@@ -225,21 +227,23 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
     """Two clouds whose picks are thin walls' bands (`cloudmatch.thin_pick`) matched on them as a thin
     cut is (`cloudmatch.thin_wall_fit`), then from starts framed by their boards (`sheets.sheet_fit`),
     then, with scanned normals, with a rough-skinned piece's break read off its creases or from one
-    axis of revolution laid on the other (`sheets.scanned_fit`): result kept where no fit passes.
-    bands: `_bands` of the pair where the caller has it."""
-    t0 = time.perf_counter()
-    spacing, skins, thin = bands or _bands(pa, pb)
-    found, index_of = None, index_cache(be)
+    axis of revolution laid on the other (`sheets.scanned_fit`): result kept where no fit passes. A
+    fit laying the pieces' axes apart (`revolution.axes_meet`) lets the next path try (vessel-noisy
+    seed 52: a boards' fit 17 degrees off). bands: `_bands` of the pair where the caller has it."""
+    t0, (spacing, skins, thin) = time.perf_counter(), bands or _bands(pa, pb)
+    found, index_of, samples = None, index_cache(be), [pa.sample, pb.sample]
+
+    def laid_on_axes(fit):  # as `skinhold.on_axes` refuses it at the end
+        apart = fit is not None and axes_meet(pa.sample.axis, pb.sample.axis, fit[0], scale, params.axis_apart)
+        return None if apart else fit
     if all(thin):
         fits, index_of = _candidate_fits(pa, pb, params, be, None, scale, dict(timings))
-        found = thin_wall_fit(skins, [pa.sample, pb.sample], [t for t, *_ in fits], spacing, params, scale, be,
-                              index_of)
-        if found is None:
-            found = sheet_fit(skins, [pa.sample, pb.sample], spacing, params, scale, be, index_of)
+        found = laid_on_axes(thin_wall_fit(skins, samples, [t for t, *_ in fits], spacing, params, scale, be, index_of))
+        found = found or laid_on_axes(sheet_fit(skins, samples, spacing, params, scale, be, index_of))
     scanned = [getattr(p.fragment, "normals", None) for p in (pa, pb)]
     if found is None and all(n is not None for n in scanned):
         found = scanned_fit([np.asarray(p.fragment.vertices, np.float64) for p in (pa, pb)], scanned, skins,
-                            [pa.sample, pb.sample], spacing, params, scale, be, index_of)
+                            samples, spacing, params, scale, be, index_of)
     if found is None:
         return result
     (transform, ver, reason), timings = found, {**timings, "seam": time.perf_counter() - t0}
@@ -384,7 +388,7 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     picking = not clouds and params.skin_pick is not None
     best, passed, banded = None, [], []  # (transform, verification, ca, cb, pairs) each
     for transform, ca, cb, pairs in fits:
-        if any(_same_fit(transform, fit[0], scale) for fit in passed):
+        if any(same_fit(transform, fit[0], scale) for fit in passed):
             continue  # refined to a fit already passed: it would pass alike
         if clouds:  # mutual overlap, facing, interpenetration near the other surface only
             ver = verify_clouds(pa.sample, pb.sample, transform, be, params.contact_distance * scale,
@@ -423,11 +427,6 @@ def _match_prepared(pa: Prepared, pb: Prepared, params: Params, be, heads, scale
     score = weight * ver.overlap * (1.0 - ver.penetration) if ver.accepted else 0.0
     return PairMatch(transform, ver.accepted, score, ver.rmse, ver.overlap, ver.penetration,
                      pairs, ca, cb, ver.reason, timings)
-
-
-def _same_fit(p: np.ndarray, q: np.ndarray, scale: float) -> bool:
-    """Whether two (4, 4) fits are one: within 0.06 degrees and a thousandth of the scale."""
-    return bool(np.abs(p[:3, :3] - q[:3, :3]).max() < 1e-3 and np.abs(p[:3, 3] - q[:3, 3]).max() < 1e-3 * scale)
 
 
 def _candidate_fits(pa: Prepared, pb: Prepared, params: Params, be, heads, scale: float, timings: dict):
