@@ -43,8 +43,9 @@ LINK_OFFSET = 0.5
 # thin objects, the Blender shards, the synth shapes) reads 0.00-0.04, negated 0.97-1.00; an open
 # cap 0.00-0.07
 INWARD = 0.75
-# ... and point by point (`orient_normals` on their lines) where more than MIXED faces away: normals
-# exported unoriented (a plane fit's sign is arbitrary) read 0.45-0.55 with random signs
+# ... and point by point (`orient_normals` on their lines) where more than MIXED faces away: the same
+# clouds' true normals read 0.000-0.026, signed at random 0.48-0.53, plane fits exported unoriented
+# (a plane fit's sign is arbitrary) 0.41-0.59
 MIXED = 0.25
 # A faceted skin's second reading (`fracture_likelihood`): taken where the first picks under
 # EMPTY_PICK of the points; angles under FLAT_ANGLE (radians) are exactly flat, and a flat

@@ -127,7 +127,8 @@ def _match_readings(a, b, params: Params, be, heads, scale: float) -> PairMatch:
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
     # two readings' fits at different poses are weighed by how their rims meet the partner's creases:
     # a reading that takes a patch of skin for the break can pass a wrong fit of that patch, and the
-    # right fit puts the outlines of the common break together, whichever reading found it
+    # right fit puts the outlines of the common break together, whichever reading found it; a fit
+    # whose crease points on the other surface mostly lie on its creases (above 0) is taken as it is
     rim_index, contact = index_cache(be), params.contact_distance * scale
     rims = None if heads is not None or clouds else (
         lambda t: rim_agreement(pa.sample, pb.sample, t, contact, rim_index))
