@@ -695,7 +695,7 @@ def test_a_thin_walls_fit_without_normals_whose_axes_do_not_meet_is_refused():
     """Vessel-clean seed 21 without normals: with the thin wall's normals its bands pass at a fit 23
     degrees off, which carries one sherd's axis of revolution 22 degrees off the other's; refused
     (the right fits so found keep the axes within 0.8-5.6 degrees), where the reading finds it
-    (`skinhold.on_axes`) or after (`match_pair`'s own ask)."""
+    (`skinhold.on_axes`, or within the thin paths) or after (`match_pair`'s own ask)."""
     frags, _ = _corpus_cloud_pair("vessel-clean", 21, 21, with_normals=False)
     result = match_pair(*frags, backend="numpy")
     assert not result.accepted

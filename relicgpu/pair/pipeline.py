@@ -232,11 +232,11 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
     fit laying the pieces' axes apart (`revolution.axes_meet`) lets the next path try (vessel-noisy
     seed 52: a boards' fit 17 degrees off). bands: `_bands` of the pair where the caller has it."""
     t0, (spacing, skins, thin) = time.perf_counter(), bands or _bands(pa, pb)
-    found, index_of, samples = None, index_cache(be), [pa.sample, pb.sample]
+    found, index_of, samples, apart = None, index_cache(be), [pa.sample, pb.sample], []
 
-    def laid_on_axes(fit):  # as `skinhold.on_axes` refuses it at the end
-        apart = fit is not None and axes_meet(pa.sample.axis, pb.sample.axis, fit[0], scale, params.axis_apart)
-        return None if apart else fit
+    def laid_on_axes(fit):  # as `skinhold.on_axes` refuses it at the end, and why kept in `apart`
+        apart.append(fit is not None and axes_meet(pa.sample.axis, pb.sample.axis, fit[0], scale, params.axis_apart))
+        return None if apart[-1] else fit
     if all(thin):
         fits, index_of = _candidate_fits(pa, pb, params, be, None, scale, dict(timings))
         found = laid_on_axes(thin_wall_fit(skins, samples, [t for t, *_ in fits], spacing, params, scale, be, index_of))
@@ -246,7 +246,7 @@ def _match_thin(pa: Prepared, pb: Prepared, params: Params, be, scale: float, ti
         found = scanned_fit([np.asarray(p.fragment.vertices, np.float64) for p in (pa, pb)], scanned, skins,
                             samples, spacing, params, scale, be, index_of)
     if found is None:
-        return result
+        return replace(result, reason=next(filter(None, apart), result.reason))
     (transform, ver, reason), timings = found, {**timings, "seam": time.perf_counter() - t0}
     return PairMatch(transform, True, ver.overlap * (1.0 - ver.penetration), ver.rmse, ver.overlap,
                      ver.penetration, np.zeros((0, 2), np.int64), -1, -1, reason, timings)
