@@ -176,14 +176,15 @@ class Params:
     # (`planar.fit_score`), with no fit at another turn close (`cutfit.match_planes`), is
     # taken before the crease regions are tried (None: never)
     min_plane: float | None = 0.3
-    # clouds scanned without normals that nothing matched are matched once more with a thin wall's
-    # normals (`cloud.wall_normals`: each face's own, the break strip's between them); such a fit is
+    # clouds scanned without normals that nothing matched, where a pick is a thin wall's band, are
+    # matched once more with a thin wall's normals (`cloud.wall_normals`: each face's own, the break strip's between them); such a fit is
     # refused where the pieces' axes of revolution do not meet or their walls tilt apart (a sherd
     # laid upside down), and weighs `pipeline.SECOND_READING_SCORE` of its score in the assembly
     wall_normals: bool = True
     # clouds with given normals that nothing matched are matched once more on their points alone (as
     # scanned without normals, `wall_normals` included): normals a program fitted to the points are
-    # blended over creases and across thin walls, where the points alone are read for what they are
+    # blended over creases and across thin walls, where the points alone are read for what they are;
+    # two thin walls' bands (`cloudmatch.thin_pick`) are asked `wall_normals` alone
     points_alone: bool = True
     outline_radius: float = 0.05
     outline_spread: float = 0.12

@@ -638,6 +638,21 @@ def test_clouds_that_their_normals_do_not_match_are_matched_on_their_points_alon
     assert not match_pair(*frags, Params(points_alone=False), backend="numpy").accepted
 
 
+def test_thin_walls_whose_normals_a_program_fitted_are_matched_with_the_walls_normals():
+    """Vessel-clean seed 0 with normals fitted to the points (12-nearest planes, as a scanner's
+    software writes them): across a wall two spacings thick they blend both faces, nothing matches
+    on them, and both picks are thin walls' bands, so the points alone are not asked; the wall's own
+    normals (`cloud.wall_normals`) match it, and say so. Without `Params.points_alone`, refused."""
+    from relicgpu.cloud.points import cloud_fragment, estimate_normals
+
+    bare, truth = _corpus_cloud_pair("vessel-clean", 0, 3, with_normals=False)
+    frags = [cloud_fragment(f.name, f.vertices, estimate_normals(f.vertices)) for f in bare]
+    result = match_pair(*frags, backend="numpy")
+    assert result.reason.endswith("(with a thin wall's normals, the given normals set aside)"), result.reason
+    _assert_right(result, frags[1], truth)
+    assert not match_pair(*frags, Params(points_alone=False), backend="numpy").accepted
+
+
 def test_a_boards_fit_laying_the_axes_apart_lets_the_axes_be_laid_on_each_other():
     """Vessel-noisy seed 52 with normals: its picks are thin walls' bands, and the boards' starts
     (`sheets.sheet_fit`) passed a fit 17 degrees off whose axes of revolution do not meet. Refused

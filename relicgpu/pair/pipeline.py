@@ -81,47 +81,49 @@ def match_pair(a, b, params: Params | None = None, backend="auto", heads=None, s
     where it passed only in the band (`meshfit.band_fit`, `Params.second_when_banded`): its fit is
     taken where the first found none or its rims agree more; it scores `SECOND_READING_SCORE`. Two
     clouds with given normals that nothing matched are matched again on their points alone
-    (`Params.points_alone`), and two without, with a thin wall's normals (`Params.wall_normals`):
-    such fits score `SECOND_READING_SCORE` too."""
+    (`Params.points_alone`), and two without, or two thin walls' bands, with a thin wall's normals
+    where a pick is one (`Params.wall_normals`; on thick pieces they find nothing): such fits score
+    `SECOND_READING_SCORE` too."""
     params, be = params or Params(), resolve(backend)
     scale = float(scale or pair_scale(a, b, params))
     a, b = (_as_prepared(x, params, be, scale) for x in (a, b))
     result = _match_readings(a, b, params, be, heads, scale)
     fragments = [a.fragment, b.fragment]
-    # not two thin walls: their scanned normals' own paths read them better (vessel-noisy seed 14: 118 degrees off)
-    if not (result.accepted or heads is not None or not params.points_alone
-            or not all(is_cloud(f) and f.normals is not None for f in fragments) or all(_bands(a, b)[2])):
-        alone = match_pair(*(cloud_fragment(f.name, f.vertices, None, f.source, f.notes) for f in fragments), params,
-                           be, scale=scale)
-        if not alone.accepted:
-            return replace(result, reason=f"{result.reason}; on the points alone: {alone.reason}")
-        return replace(alone, score=SECOND_READING_SCORE * alone.score,
-                       reason=f"{alone.reason} (on the points alone, the given normals set aside)")
-    if (result.accepted or heads is not None or not params.wall_normals
-            or not all(is_cloud(f) and f.normals is None for f in fragments)):
+    if (result.accepted or heads is not None or not all(is_cloud(f) for f in fragments)
+            or len({f.normals is None for f in fragments}) > 1):
         return result
+    given, thin = fragments[0].normals is not None, _bands(a, b)[2]
+    # a thin wall's bands are read on its wall's normals: a plane fit blends its faces (vessel-noisy 14: 118 deg off)
+    if given and params.points_alone and not all(thin):
+        how, again = "on the points alone", match_pair(
+            *(cloud_fragment(f.name, f.vertices, None, f.source, f.notes) for f in fragments), params, be, scale=scale)
+    elif params.wall_normals and any(thin) and (params.points_alone or not given):
+        how, again = "with a thin wall's normals", _on_wall_normals(fragments, params, be, scale)
+    else:
+        return result
+    if not again.accepted:
+        return replace(result, reason=f"{result.reason}; {how}: {again.reason}")
+    why = ", the given normals set aside" if given else "; the clouds had none"
+    return replace(again, score=SECOND_READING_SCORE * again.score, reason=f"{again.reason} ({how}{why})")
+
+
+def _on_wall_normals(fragments, params: Params, be, scale: float) -> PairMatch:
+    """Two clouds matched on a thin wall's normals (`cloud.wall_normals`); axes or profiles apart refused."""
     whole = replace(params, cloud_points=0)  # normals of its own: a cloud without scan normals is kept whole
     pa, pb = (prepare(cloud_fragment(f.name, f.vertices, wall_normals(f.vertices), f.source, f.notes), whole, be,
                       scale=scale) for f in fragments)
-    second = _match_readings(pa, pb, params, be, None, scale)
-    if not second.accepted:
-        return replace(result, reason=f"{result.reason}; with a thin wall's normals: {second.reason}")
-    # such normals hold a vessel's axis of revolution; its sherds share one and one profile (`revolution`)
-    walls = [(p.fragment.vertices, p.fragment.normals) for p in (pa, pb)]
+    found = _match_readings(pa, pb, params, be, None, scale)
     axes = [p.sample.axis and replace(p.sample.axis, thin=True) for p in (pa, pb)]  # read in `prepare`, as a wall's
-    apart = axes_meet(*axes, second.transform, scale, params.axis_apart) or profiles_agree(
-        *walls[0], axes[0], *walls[1], axes[1], second.transform, scale)
-    if apart is not None:
-        return replace(result, reason=f"{result.reason}; with a thin wall's normals a fit refused: {apart}")
-    return replace(second, score=SECOND_READING_SCORE * second.score,
-                   reason=f"{second.reason} (with a thin wall's normals; the clouds had none)")
+    apart = found.accepted and (axes_meet(*axes, found.transform, scale, params.axis_apart) or profiles_agree(
+        pa.fragment.vertices, pa.fragment.normals, axes[0], pb.fragment.vertices, pb.fragment.normals, axes[1],
+        found.transform, scale))
+    return replace(found, accepted=False, reason=f"a fit refused: {apart}") if apart else found
 
 
 def _match_readings(a, b, params: Params, be, heads, scale: float) -> PairMatch:
     """`match_pair` on the fragments as they are (Fragments or Prepared), every reading asked."""
     t_start = time.perf_counter()
-    pa = _as_prepared(a, params, be, scale)
-    pb = _as_prepared(b, params, be, scale)
+    pa, pb = (_as_prepared(x, params, be, scale) for x in (a, b))
     params = cloud_params(params, (pa.fragment, pb.fragment), scale)
     timings = {"prepare": time.perf_counter() - t_start}
     clouds = is_cloud(pa.fragment) or is_cloud(pb.fragment)
@@ -266,10 +268,8 @@ def _boards_before_regions(pa: Prepared, pb: Prepared, params: Params, be, scale
     the thin paths' fit (`_match_thin`) where they find one: a board's narrow faces are crease regions
     too, and laid on each other they pass at a quarter or half turn (bookshelves cut rough and smooth,
     a Blender cube's thin shards; docs/benchmarks.md)."""
-    if not fit.accepted or any(getattr(p.fragment, "normals", None) is None for p in (pa, pb)):
-        return fit
-    bands = _bands(pa, pb)
-    if not all(bands[2]):
+    if (not fit.accepted or any(getattr(p.fragment, "normals", None) is None for p in (pa, pb))
+            or not all((bands := _bands(pa, pb))[2])):
         return fit
     thin = _match_thin(pa, pb, params, be, scale, timings, replace(fit, accepted=False), bands)
     return thin if thin.accepted else fit
