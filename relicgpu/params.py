@@ -178,8 +178,9 @@ class Params:
     min_plane: float | None = 0.3
     # clouds scanned without normals that nothing matched, where a pick is a thin wall's band, are
     # matched once more with a thin wall's normals (`cloud.wall_normals`: each face's own, the break
-    # strip's between them); such a fit is refused where the pieces' axes of revolution do not meet or their walls tilt apart (a sherd
-    # laid upside down), and weighs `pipeline.SECOND_READING_SCORE` of its score in the assembly
+    # strip's between them); such a fit is refused where the pieces' axes of revolution do not meet
+    # or their walls tilt apart (a sherd laid upside down), and weighs `pipeline.SECOND_READING_SCORE`
+    # of its score in the assembly
     wall_normals: bool = True
     # clouds with given normals that nothing matched are matched once more on their points alone (as
     # scanned without normals, `wall_normals` included): normals a program fitted to the points are
