@@ -9,6 +9,7 @@
     python scripts/bench_clouds.py --source thin --pairs 108            # bookshelves and a plant, 12 seeds
     python scripts/bench_clouds.py --source corpus --kinds vessel-clean --pairs 48   # one family, seeds 0-47
     python scripts/bench_clouds.py --source realdata --pairs 20         # Blender shards, touching pairs 0-9 of each set
+    python scripts/bench_clouds.py --source corpus --pieces 5 --pairs 8  # 8 objects of 5 pieces, assembled
 
 Pair k is relicgpu.synth's two-piece {vase, torso, slab}[k % 3] of seed k // 3 (4,000 faces or --faces,
 scanner noise 0.05% of the size); with --source corpus the clean two-piece object of
@@ -29,6 +30,12 @@ rotation error under 2 degrees and the moved piece's points within 1% RMS of the
 lengths relative to the object's size (the largest side of its assembled bounding box). A pair
 accepted at a wrong pose is counted apart: it is worse than a miss. The summary gives each mode's
 counts over all pairs and per shape (synth), family (corpus, thin) or set (realdata).
+
+With --pieces over 2, case k is the object of pair k's kind and seed broken into that many pieces
+(synth, corpus): every piece becomes an input as above (piece i seeded as piece i of pair k), the
+inputs are assembled (`relicgpu.heap.assembly.assemble`, one process a case) and scored as
+`bench_generalize.py` scores an object: part accuracy (pieces within 1% of the size of their true
+place, from the best anchor), touching recall, used matches right.
 """
 from __future__ import annotations
 
@@ -36,6 +43,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -76,43 +84,49 @@ def make_pair(k: int, mode: str, points: int, noise: float, source: str = "synth
               faces: int = 4000):
     """The two fragments of pair k in `mode` and the truth carrying b onto a (synth and corpus
     objects made of about `faces` faces)."""
-    import trimesh
-
-    from relicgpu import synth
-    from relicgpu.synth import corpus, thin
-    from relicgpu.cloud.points import cloud_fragment
-
     kind, seed = pair_case(k, source, kinds)
-    if source == "corpus":
-        r = corpus.generate(kind, pieces=2, seed=seed, faces=faces)
-    elif source == "thin":
-        r = thin.generate(kind, seed=seed)
-    elif source == "realdata":
-        r = corpus.realdata(kind, seed=0)
-    else:
-        r = synth.generate(kind, pieces=2, seed=seed, faces=faces, noise=0.0005, progress=False)
+    r = make_object(source, kind, seed, 2, faces)
     pieces = r.touching[seed] if source == "realdata" else (0, 1)
     truth = np.linalg.inv(r.poses[pieces[0]]) @ r.poses[pieces[1]]
-    frags = []
-    for i, f in zip(pieces, [r.fragments[p] for p in pieces]):
-        m = f.to_trimesh()
-        if mode == "mesh":
-            frags.append(f)
-            continue
-        if mode == "open":
-            frags.append(_cut_holes(f, r.fracture_faces[i], np.random.default_rng(100 * k + i)))
-            continue
-        p, fi = trimesh.sample.sample_surface(m, points, seed=100 * k + i)
-        p = p + np.random.default_rng(7 * k + i).normal(size=p.shape) * noise * f.size
-        normals = m.face_normals[fi] if mode.startswith("normals") else None
-        if mode == "estimated":  # as a scanner's software writes them: plane fits, oriented
-            from relicgpu.cloud.points import estimate_normals
-            normals = estimate_normals(p)
-        if mode == "unoriented":  # the true normals' lines, each sign at random
-            normals = m.face_normals[fi] * np.random.default_rng(11 * k + i).choice([-1.0, 1.0], (len(p), 1))
-        frags.append(_through_a_file(f.name, p, normals) if mode.endswith("-file")
-                     else cloud_fragment(f.name, p, normals))
+    frags = [as_input(r.fragments[i], r.fracture_faces[i] if r.fracture_faces else None, mode, points, noise, k, i)
+             for i in pieces]
     return frags[0], frags[1], truth
+
+
+def make_object(source: str, kind: str, seed: int, pieces: int, faces: int):
+    """The source's object (`SynthResult`) of `kind` and `seed` in `pieces` pieces (thin: two; realdata: the set)."""
+    from relicgpu import synth
+    from relicgpu.synth import corpus, thin
+
+    if source == "corpus":
+        return corpus.generate(kind, pieces=pieces, seed=seed, faces=faces)
+    if source == "thin":
+        return thin.generate(kind, seed=seed)
+    if source == "realdata":
+        return corpus.realdata(kind, seed=0)
+    return synth.generate(kind, pieces=pieces, seed=seed, faces=faces, noise=0.0005, progress=False)
+
+
+def as_input(f, fracture: np.ndarray, mode: str, points: int, noise: float, k: int, i: int):
+    """Piece i of case k as `mode` gives it: a cloud of `points` drawn off its surface (seed 100 k + i,
+    noise seed 7 k + i) with its normals as the mode has them, or its mesh (`open`: holes cut, `mesh`)."""
+    from relicgpu.cloud.points import cloud_fragment
+    import trimesh
+
+    if mode == "mesh":
+        return f
+    if mode == "open":
+        return _cut_holes(f, fracture, np.random.default_rng(100 * k + i))
+    m = f.to_trimesh()
+    p, fi = trimesh.sample.sample_surface(m, points, seed=100 * k + i)
+    p = p + np.random.default_rng(7 * k + i).normal(size=p.shape) * noise * f.size
+    normals = m.face_normals[fi] if mode.startswith("normals") else None
+    if mode == "estimated":  # as a scanner's software writes them: plane fits, oriented
+        from relicgpu.cloud.points import estimate_normals
+        normals = estimate_normals(p)
+    if mode == "unoriented":  # the true normals' lines, each sign at random
+        normals = m.face_normals[fi] * np.random.default_rng(11 * k + i).choice([-1.0, 1.0], (len(p), 1))
+    return _through_a_file(f.name, p, normals) if mode.endswith("-file") else cloud_fragment(f.name, p, normals)
 
 
 def _through_a_file(name: str, points: np.ndarray, normals):
@@ -177,6 +191,28 @@ def run_pair(k: int, mode: str, points: int, noise: float, source: str, backend:
             "seconds": time.perf_counter() - t0}
 
 
+def run_object(k: int, mode: str, points: int, noise: float, source: str, backend: str,
+               changes: dict | None = None, kinds: str = "", faces: int = 4000, pieces: int = 5) -> dict:
+    """`assemble` on the pieces of object k (case k's kind and seed, in `pieces` pieces) as `mode` gives
+    them, scored as `bench_generalize.py` scores an object (a row of the JSON; an error is a row too)."""
+    from bench_generalize import assembly_case
+
+    from relicgpu.synth import corpus
+
+    t0 = time.perf_counter()
+    row = {"mode": mode, "object": k, "pieces": pieces, "case": pair_name(k, source, kinds)}
+    try:
+        r = make_object(source, *pair_case(k, source, kinds), pieces, faces)
+        inputs = [as_input(f, r.fracture_faces[i], mode, points, noise, k, i) for i, f in enumerate(r.fragments)]
+        size = corpus.object_size(r)  # of the meshes the inputs are drawn off
+        t0 = time.perf_counter()
+        found = assembly_case(replace(r, fragments=inputs), Params().with_(**(changes or {})), backend, 1, size)
+    except Exception as err:  # noqa: BLE001 - one object's fault is reported in its row
+        return {**row, "part_accuracy": 0.0, "error": f"{type(err).__name__}: {err}",
+                "seconds": time.perf_counter() - t0}
+    return {**row, **found, "seconds": time.perf_counter() - t0}
+
+
 def is_right(row: dict) -> bool:
     return row["accepted"] and row["rotation_error_deg"] < 2 and row["rms"] < 0.01
 
@@ -192,6 +228,20 @@ def summarise(rows: list[dict]) -> dict:
         s["wrong_accepted"] += wrong
         s["pairs"] += 1
         kind[0], kind[1], kind[2] = kind[0] + right, kind[1] + wrong, kind[2] + 1
+    return summary
+
+
+def summarise_objects(rows: list[dict]) -> dict:
+    """{mode: {"objects", "part_accuracy" (mean), "whole", "by_kind": {family: [mean part accuracy, objects]}}}."""
+    summary = {}
+    for mode in dict.fromkeys(row["mode"] for row in rows):
+        mine = [row for row in rows if row["mode"] == mode]
+        kinds = {}
+        for row in mine:
+            kinds.setdefault(row["case"].rsplit(" ", 2)[0], []).append(row["part_accuracy"])
+        summary[mode] = {"objects": len(mine), "part_accuracy": float(np.mean([r["part_accuracy"] for r in mine])),
+                         "whole": sum(r["part_accuracy"] >= 1.0 for r in mine),
+                         "by_kind": {kind: [float(np.mean(v)), len(v)] for kind, v in kinds.items()}}
     return summary
 
 
@@ -212,6 +262,9 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=1, help="pairs matched at once, a process each")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="a Params field for every pair (repeatable), e.g. min_skin=None")
+    ap.add_argument("--pieces", type=int, default=2,
+                    help="over 2: case k is an object of that many pieces (synth or corpus), its inputs assembled "
+                         "(`assemble`, one process) and scored by part accuracy")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     try:
@@ -226,12 +279,22 @@ def main(argv=None) -> int:
     except ValueError as err:
         ap.error(f"--kinds: {err}")
 
+    objects = args.pieces > 2
+    if objects and args.source not in ("synth", "corpus"):
+        ap.error("--pieces over 2: --source synth or corpus")
     jobs = [(k, mode, args.points, args.noise, args.source, args.backend, changes, args.kinds, args.faces)
-            for mode in args.modes.split(",") for k in range(args.first, args.first + args.pairs)]
-    rows = []
+            + ((args.pieces,) if objects else ()) for mode in args.modes.split(",")
+            for k in range(args.first, args.first + args.pairs)]
+    run, rows = run_object if objects else run_pair, []
 
     def report(row):
         rows.append(row)
+        if objects:
+            said = row.get("error") or (f"{row['used_right']} of {row['used']} used matches right, "
+                                        f"touching recall {row['touching_recall']:.2f}, {row['groups']} groups")
+            print(f"  {row['mode']:7s} {row['case']} ({row['pieces']} pieces): part accuracy "
+                  f"{row['part_accuracy']:.2f} ({said}) {row['seconds']:.1f} s", file=sys.stderr, flush=True)
+            return
         tag = "right" if is_right(row) else ("WRONG ACCEPTED" if row["accepted"] else "rejected")
         print(f"  {row['mode']:7s} {row['case']}: rot {row['rotation_error_deg']:7.2f} deg, rms {row['rms']:.4f}, "
               f"{tag} ({row['reason']}) {row['seconds']:.1f} s", file=sys.stderr, flush=True)
@@ -240,15 +303,21 @@ def main(argv=None) -> int:
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(args.workers) as pool:
-            for row in pool.map(run_pair, *zip(*jobs)):
+            for row in pool.map(run, *zip(*jobs)):
                 report(row)
     else:
         for job in jobs:
-            report(run_pair(*job))
-    summary = summarise(rows)
-    print(f"\n{args.source} pairs {args.first}-{args.first + args.pairs - 1}, {args.points} points, noise {args.noise}, "
+            report(run(*job))
+    summary = summarise_objects(rows) if objects else summarise(rows)
+    print(f"\n{args.source} {'objects' if objects else 'pairs'} {args.first}-{args.first + args.pairs - 1}"
+          f"{f' of {args.pieces} pieces' if objects else ''}, {args.points} points, noise {args.noise}, "
           f"backend {args.backend}")
     for mode, s in summary.items():
+        if objects:
+            kinds = ", ".join(f"{kind} {acc:.2f} ({n})" for kind, (acc, n) in s["by_kind"].items())
+            print(f"  {mode:8s} mean part accuracy {s['part_accuracy']:.3f} of {s['objects']} objects, "
+                  f"{s['whole']} whole: {kinds}")
+            continue
         kinds = ", ".join(f"{kind} {r}/{n}" + (f" ({w} wrong)" if w else "") for kind, (r, w, n) in s["by_kind"].items())
         print(f"  {mode:8s} {s['right']}/{s['pairs']} right, {s['wrong_accepted']} accepted at a wrong pose: {kinds}")
     if args.json:

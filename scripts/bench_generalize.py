@@ -185,10 +185,11 @@ def cloud_pair_case(name: str, params: Params, backend) -> dict:
             "right": bool(m.accepted and is_right(rot, rms)), "points": [len(a.vertices), len(b.vertices)]}
 
 
-def assembly_case(result, params: Params, backend, workers: int) -> dict:
+def assembly_case(result, params: Params, backend, workers: int, size: float | None = None) -> dict:
+    """`assemble` on the result's fragments, scored; size: the object's (default: `corpus.object_size`)."""
     from relicgpu.heap.assembly import assemble
 
-    size = corpus.object_size(result)
+    size = size or corpus.object_size(result)
     asm = assemble(list(result.fragments), params, backend, engine="local", workers=workers, progress=False)
     index = {f.name: i for i, f in enumerate(result.fragments)}
     order = [index[n] for n in asm.names]  # the assembly's fragments by name (it may reorder)

@@ -183,3 +183,19 @@ def test_bench_clouds_reports_a_pair_it_cannot_match_and_goes_on():
     assert row["case"] == "shelf04-flat seed 2" and not row["accepted"]
     assert row["reason"].startswith("error: ") and row["rotation_error_deg"] == float("inf")
     assert summarise([row])["normals"]["pairs"] == 1
+
+
+def test_bench_clouds_assembles_an_object_of_clouds_and_scores_it():
+    """`--pieces 3`: the corpus's rough-clean seed 0 in three pieces, as clouds with their normals,
+    assembled whole by `assemble` (every used match right); a case that cannot be made is a row
+    naming its fault."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from bench_clouds import main, run_object
+
+    row = run_object(0, "normals", 2500, 0.0005, "corpus", "numpy", kinds="rough-clean", pieces=3)
+    assert row["case"] == "rough-clean seed 0" and row["pieces"] == 3
+    assert row["part_accuracy"] == 1.0 and row["used"] == row["used_right"] >= 2, row
+    bad = run_object(0, "normals", 0, 0.0005, "corpus", "numpy", kinds="rough-clean", pieces=3)
+    assert bad["part_accuracy"] == 0.0 and bad["error"], bad
+    with pytest.raises(SystemExit):
+        main(["--source", "thin", "--pieces", "3"])
