@@ -107,7 +107,7 @@ def make_object(source: str, kind: str, seed: int, pieces: int, faces: int):
     return synth.generate(kind, pieces=pieces, seed=seed, faces=faces, noise=0.0005, progress=False)
 
 
-def as_input(f, fracture: np.ndarray, mode: str, points: int, noise: float, k: int, i: int):
+def as_input(f, fracture: np.ndarray | None, mode: str, points: int, noise: float, k: int, i: int):
     """Piece i of case k as `mode` gives it: a cloud of `points` drawn off its surface (seed 100 k + i,
     noise seed 7 k + i) with its normals as the mode has them, or its mesh (`open`: holes cut, `mesh`)."""
     from relicgpu.cloud.points import cloud_fragment
